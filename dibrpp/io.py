@@ -1,0 +1,208 @@
+"""The one I/O module: EXR (linear HDR), PNG (sRGB 8-bit), meshes (via trimesh), atomic writes.
+
+Every reader validates what it reads and raises :class:`DataError` with a message that says what is
+wrong and what to do; every writer writes to a temporary file and renames, so a crash never leaves a
+half-written file behind.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+class DataError(ValueError):
+    """A file that cannot be used as it is: missing, unreadable, wrong shape or non-finite."""
+
+
+@contextlib.contextmanager
+def atomic_path(path, suffix: str | None = None):
+    """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix or path.suffix)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _require_file(path) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such file")
+    return path
+
+
+# ----------------------------------------------------------------------------- EXR
+
+def read_exr_channels(path) -> dict[str, np.ndarray]:
+    """All channels of a (single- or multi-layer) EXR as float32 (H, W) arrays keyed by full name."""
+    import OpenEXR
+
+    path = _require_file(path)
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
+    except Exception as e:  # OpenEXR raises RuntimeError with little context
+        raise DataError(f"{path}: not a readable OpenEXR file ({e}); re-export it as EXR") from e
+    return channels
+
+
+def read_exr(path, channels: str = "RGB", allow_nonfinite: bool = False) -> np.ndarray:
+    """Read ``channels`` (e.g. "RGB", "RGBA") of an EXR into a float32 (H, W, C) array.
+
+    Channel letters are matched against the last dotted component of the channel names, so
+    multi-layer files written by Blender ("ViewLayer.Combined.R") read the same way.
+    """
+    found = read_exr_channels(path)
+    by_letter = {}
+    for name, arr in found.items():
+        by_letter.setdefault(name.split(".")[-1], arr)
+    missing = [c for c in channels if c not in by_letter]
+    if missing:
+        raise DataError(f"{path}: EXR has channels {sorted(found)}, missing {missing}; expected {channels}")
+    img = np.stack([by_letter[c] for c in channels], -1)
+    if not allow_nonfinite and not np.isfinite(img).all():
+        bad = int((~np.isfinite(img)).sum())
+        raise DataError(f"{path}: {bad} non-finite values (NaN/Inf) in channels {channels}; the file is corrupt")
+    return img
+
+
+def write_exr(path, image, channels: str | None = None) -> None:
+    """Write a float (H, W, C) array/tensor as a single-part, ZIP-compressed float32 EXR, atomically."""
+    import OpenEXR
+
+    img = image.detach().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    if img.ndim == 2:
+        img = img[..., None]
+    channels = channels or {1: "Y", 3: "RGB", 4: "RGBA"}.get(img.shape[-1])
+    if channels is None or len(channels) != img.shape[-1]:
+        raise ValueError(f"cannot name the channels of an image of shape {img.shape}; pass channels=")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    data = {c: np.ascontiguousarray(img[..., i], dtype=np.float32) for i, c in enumerate(channels)}
+    with atomic_path(path) as tmp:
+        OpenEXR.File(header, data).write(str(tmp))
+
+
+# ----------------------------------------------------------------------------- PNG
+
+def read_png(path, linear: bool = False) -> np.ndarray:
+    """An 8/16-bit image as float32 (H, W, C) in [0, 1]; sRGB-decoded to linear if ``linear``."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = _require_file(path)
+    try:
+        with Image.open(path) as im:
+            has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
+            mode = "RGBA" if has_alpha else "RGB"
+            arr = np.asarray(im.convert(mode), dtype=np.float32) / 255.0
+    except (UnidentifiedImageError, OSError) as e:
+        raise DataError(f"{path}: not a readable image ({e})") from e
+    if linear:
+        from .conventions import srgb_to_linear
+
+        rgb = srgb_to_linear(torch.from_numpy(arr[..., :3])).numpy()
+        arr = np.concatenate([rgb, arr[..., 3:]], -1)
+    return arr
+
+
+def write_png(path, image, srgb: bool = True) -> None:
+    """Write a linear float (H, W, C) image (C = 1, 3 or 4) as 8-bit PNG; colour sRGB-encoded, alpha kept linear."""
+    from PIL import Image
+
+    from .conventions import linear_to_srgb
+
+    img = image.detach().cpu().float() if isinstance(image, torch.Tensor) else torch.as_tensor(np.asarray(image, dtype=np.float32))
+    if img.dim() == 2:
+        img = img.unsqueeze(-1)
+    colour = img[..., :3]
+    if srgb:
+        colour = linear_to_srgb(colour)
+    img = torch.cat([colour, img[..., 3:]], -1).clamp(0, 1)
+    arr = (img.numpy() * 255 + 0.5).astype(np.uint8)
+    arr = arr[..., 0] if arr.shape[-1] == 1 else arr
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="PNG")
+
+
+def read_image(path, linear: bool = True) -> np.ndarray:
+    """EXR (linear) or PNG/JPEG (sRGB, decoded to linear when ``linear``) by extension."""
+    if str(path).lower().endswith(".exr"):
+        return read_exr(path, "RGBA" if "A" in {n.split(".")[-1] for n in read_exr_channels(path)} else "RGB")
+    return read_png(path, linear=linear)
+
+
+def write_image(path, image) -> None:
+    """Linear image to ``.exr`` (as is) or ``.png`` (sRGB preview) by extension."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".exr":
+        write_exr(path, image)
+    elif suffix == ".png":
+        write_png(path, image)
+    else:
+        raise ValueError(f"{path}: unsupported output format {suffix!r}; use .exr or .png")
+
+
+# ----------------------------------------------------------------------------- meshes
+
+def load_mesh(path, device=None, with_uvs: bool = False):
+    """Load an OBJ/PLY/GLB/... with trimesh into :class:`dibrpp.mesh.Meshes` (B = 1).
+
+    Scenes are merged into one mesh. With ``with_uvs`` the file's per-vertex UVs are kept (an error
+    if it has none).
+    """
+    import trimesh
+
+    from .mesh import Meshes
+
+    path = _require_file(path)
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception as e:
+        raise DataError(f"{path}: trimesh cannot read this mesh ({e})") from e
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)] if loaded.geometry else []
+        if not geoms:
+            raise DataError(f"{path}: the file holds no triangle mesh")
+        loaded = trimesh.util.concatenate(geoms)
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise DataError(f"{path}: the file holds no triangle mesh")
+    verts = np.asarray(loaded.vertices, dtype=np.float32)
+    if not np.isfinite(verts).all():
+        raise DataError(f"{path}: {int((~np.isfinite(verts)).any(1).sum())} vertices are NaN/Inf; repair the mesh first")
+    faces = torch.as_tensor(np.asarray(loaded.faces, dtype=np.int64))
+    uvs = face_uvs = None
+    if with_uvs:
+        uv = getattr(loaded.visual, "uv", None)
+        if uv is None or len(uv) != len(verts):
+            raise DataError(f"{path}: the mesh has no per-vertex UV coordinates; drop --texture or unwrap it (e.g. xatlas)")
+        uvs = torch.as_tensor(np.asarray(uv, dtype=np.float32))
+        face_uvs = faces.clone()
+    return Meshes(torch.as_tensor(verts), faces, uvs, face_uvs).to(device)
+
+
+def save_mesh(path, verts, faces, uvs=None, texture_png: str | None = None) -> None:
+    """Save one mesh (verts (V, 3), faces (F, 3), optional per-vertex uvs) atomically; format by extension."""
+    import trimesh
+
+    v = verts.detach().cpu().numpy() if isinstance(verts, torch.Tensor) else np.asarray(verts)
+    f = faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else np.asarray(faces)
+    mesh = trimesh.Trimesh(v, f, process=False)
+    if uvs is not None:
+        uv = uvs.detach().cpu().numpy() if isinstance(uvs, torch.Tensor) else np.asarray(uvs)
+        image = None
+        if texture_png is not None:
+            from PIL import Image
+
+            image = Image.open(texture_png)
+        mesh.visual = trimesh.visual.TextureVisuals(uv=uv, image=image)
+    with atomic_path(path) as tmp:
+        mesh.export(tmp, file_type=Path(path).suffix.lstrip(".").lower())
