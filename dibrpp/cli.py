@@ -1,0 +1,127 @@
+"""``python -m dibrpp render``: render a mesh under an HDR environment map.
+
+Bad input prints one line ``error: ...`` and exits with status 2, writing nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+
+class CLIError(Exception):
+    pass
+
+
+def _parse_rgb(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(0 <= x <= 1 for x in values):
+        raise argparse.ArgumentTypeError(f"expected R,G,B with each value in [0, 1], got {text!r}")
+    return values
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, not argparse's usage dump
+        self.exit(2, f"error: {message} (see --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="python -m dibrpp", description="DIB-R++ hybrid differentiable renderer")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    r = sub.add_parser("render", help="render a mesh under an environment map")
+    r.add_argument("--mesh", required=True, help="OBJ/PLY/GLB (anything trimesh reads)")
+    colour = r.add_mutually_exclusive_group()
+    colour.add_argument("--texture", help="sRGB PNG albedo texture (uses the mesh's UVs)")
+    colour.add_argument("--albedo", type=_parse_rgb, default=(0.8, 0.8, 0.8), help="linear base colour R,G,B")
+    r.add_argument("--roughness", type=float, default=0.5, help="Principled Roughness in [0, 1]")
+    r.add_argument("--metallic", type=float, default=0.0, help="Principled Metallic in [0, 1]")
+    r.add_argument("--specular", type=float, default=0.5, help="Principled Specular IOR Level (0.5 => F0 = 0.04)")
+    r.add_argument("--envmap", help="equirectangular HDR environment map (.exr); required unless --albedo-only")
+    r.add_argument("--shading", choices=["mc", "sg", "sh"], default="mc")
+    r.add_argument("--spp", type=int, default=256, help="samples per pixel (mc)")
+    r.add_argument("--sg-lobes", type=int, default=32, help="number of SG lobes fitted to the env map (sg)")
+    r.add_argument("--distance", type=float, default=3.0)
+    r.add_argument("--elevation", type=float, default=0.0, help="degrees")
+    r.add_argument("--azimuth", type=float, default=0.0, help="degrees")
+    r.add_argument("--fov", type=float, default=40.0, help="full field of view in degrees (Blender's camera angle)")
+    r.add_argument("--resolution", type=int, default=256, help="square image side in pixels")
+    r.add_argument("--albedo-only", action="store_true", help="render the unlit base colour")
+    r.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    r.add_argument("--seed", type=int, default=0, help="random seed of the MC sampler")
+    r.add_argument("--out", required=True, help="output image: .exr (linear RGBA) or .png (sRGB preview)")
+    return parser
+
+
+def _check(args) -> None:
+    if Path(args.out).suffix.lower() not in (".exr", ".png"):
+        raise CLIError(f"--out {args.out}: use a .exr (linear RGBA) or .png (sRGB) file name")
+    out_dir = Path(args.out).resolve().parent
+    if not out_dir.is_dir():
+        raise CLIError(f"--out {args.out}: folder {out_dir} does not exist")
+    for name, lo, hi in (("roughness", 0, 1), ("metallic", 0, 1), ("specular", 0, 1)):
+        value = getattr(args, name)
+        if not lo <= value <= hi:
+            raise CLIError(f"--{name} {value}: must be in [{lo}, {hi}]")
+    if args.resolution <= 0 or args.resolution > 8192:
+        raise CLIError(f"--resolution {args.resolution}: must be in 1..8192")
+    if args.spp <= 0:
+        raise CLIError(f"--spp {args.spp}: must be positive")
+    if args.sg_lobes <= 0:
+        raise CLIError(f"--sg-lobes {args.sg_lobes}: must be positive")
+    if not 0 < args.fov < 180:
+        raise CLIError(f"--fov {args.fov}: must be in (0, 180) degrees")
+    if args.distance <= 0:
+        raise CLIError(f"--distance {args.distance}: must be positive")
+    if not args.albedo_only and not args.envmap:
+        raise CLIError("--envmap is required (or pass --albedo-only)")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise CLIError("--device cuda: no CUDA device is available to torch here; use --device cpu")
+
+
+def render_command(args) -> None:
+    from . import io
+    from .brdf import Material
+    from .camera import Cameras
+    from .conventions import srgb_to_linear
+    from .renderer import Renderer
+
+    _check(args)
+    device = torch.device(args.device)
+    mesh = io.load_mesh(args.mesh, device=device, with_uvs=bool(args.texture))
+    if args.texture:
+        tex = srgb_to_linear(torch.from_numpy(io.read_png(args.texture)[..., :3])).unsqueeze(0).to(device)
+        albedo = tex
+    else:
+        albedo = torch.tensor([args.albedo], device=device)
+    material = Material(albedo=albedo, roughness=args.roughness, metallic=args.metallic, specular=args.specular)
+    cameras = Cameras.orbit(args.distance, args.elevation, args.azimuth, args.fov, args.resolution, device=device)
+    if args.albedo_only:
+        image = Renderer("sg").render_albedo(mesh, cameras, material).image[0]
+    else:
+        from .lights import EnvMap, fit_sg_to_envmap, project_envmap_to_sh
+
+        env = EnvMap.from_exr(args.envmap).to(device)
+        light = {"mc": lambda: env, "sg": lambda: fit_sg_to_envmap(env, args.sg_lobes),
+                 "sh": lambda: project_envmap_to_sh(env)}[args.shading]()
+        with torch.no_grad():
+            image = Renderer(args.shading, spp=args.spp, seed=args.seed)(mesh, cameras, material, light).image[0]
+    io.write_image(args.out, image)
+
+
+def main(argv=None) -> int:
+    from .io import DataError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "render":
+            render_command(args)
+    except (CLIError, DataError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0

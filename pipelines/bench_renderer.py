@@ -1,0 +1,193 @@
+"""Renderer benchmark: prints tables and writes Markdown/CSV under --out.
+
+(a) the training workload (32 renders of 64x64, 642-vertex sphere, SG K=32), forward and forward+backward;
+(b) shading cost at 256x256 (rasterization cached): SG for K in 1..128 and MC for N in 1..1024 (Table A's shape);
+(c) rasterization alone for 1k/10k/100k faces at 64^2, 128^2, 256^2 (cost ~ pixels + faces, not their product).
+Peak memory is the process's peak RSS above its level before the case (Linux /proc).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import time
+from pathlib import Path
+
+import torch
+
+from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere, rasterize
+from dibrpp.lights import EnvMap, SGLight
+from dibrpp.renderer import build_gbuffer
+from dibrpp.shading import MCShader, SGShader
+
+SG_FLOP_PER_PIXEL_LOBE = 180  # inner products of the diffuse and specular lobes, RGB
+
+
+def _rss_mb(field: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _reset_peak():
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def measure(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
+    """Median seconds per call and peak RSS growth (MB) while calling ``fn``."""
+    for _ in range(warmup):
+        fn()
+    _reset_peak()
+    base = _rss_mb("VmRSS")
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    return times[len(times) // 2], max(0.0, _rss_mb("VmHWM") - base)
+
+
+def random_sg_light(k: int, batch: int = 1, seed: int = 0) -> SGLight:
+    g = torch.Generator().manual_seed(seed)
+    return SGLight(torch.randn(batch, k, 3, generator=g), 5 + 20 * torch.rand(batch, k, generator=g),
+                   torch.rand(batch, k, 3, generator=g))
+
+
+def synthetic_envmap(h: int = 128, w: int = 256) -> EnvMap:
+    from dibrpp.conventions import equirect_directions
+
+    d = equirect_directions(h, w)
+    sky = 0.4 + 0.6 * d[..., 2:].clamp_min(0) * torch.tensor([0.5, 0.7, 1.0])
+    sun = 50 * torch.exp(200 * ((d * torch.nn.functional.normalize(torch.tensor([0.3, 0.5, 0.8]), dim=0)).sum(-1, keepdim=True) - 1))
+    return EnvMap((sky + sun).unsqueeze(0))
+
+
+def bench_training(repeats: int) -> list[dict]:
+    sphere = icosphere(3, radius=1.0)
+    cams = Cameras.orbit(3.0, 27.0, torch.arange(32.0) * (360 / 32), 40.0, 64)
+    renderer = Renderer("sg", raster_settings=RasterSettings(cull_backfaces=True))
+    light = random_sg_light(32, batch=32)
+    verts = sphere.verts.expand(32, -1, -1).clone().requires_grad_(True)
+    tex = torch.rand(32, 64, 128, 3, requires_grad=True)
+    lam = light.sharpness.clone().requires_grad_(True)
+    rows = []
+
+    def forward():
+        mat = Material(albedo=tex, roughness=torch.full((32,), 0.3), specular=torch.full((32,), 0.5), wrap_u=True)
+        lt = SGLight(light.axis, lam, light.amplitude)
+        return renderer(sphere.with_verts(verts), cams, mat, lt).image
+
+    def fwd():
+        with torch.no_grad():
+            forward()
+
+    def fwd_bwd():
+        forward().sum().backward()
+
+    for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
+        t, mem = measure(fn, repeats)
+        rows.append({"case": "training workload: 32 x 64^2, 642 verts, SG K=32", "pass": name, "ms": 1000 * t, "peak_mb": mem})
+    return rows
+
+
+def _sphere_gbuffer(res: int):
+    sphere = icosphere(4, radius=1.0)
+    cams = Cameras.orbit(3.0, 0.0, 0.0, 45.0, res)
+    frags = rasterize(sphere, cams)
+    return sphere, cams, frags
+
+
+def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
+    sphere, cams, frags = _sphere_gbuffer(res)
+    n_pix = int(frags.mask.sum())
+    rows = []
+    env = synthetic_envmap()
+    for kind, values in (("SG", sg_ks), ("MC", mc_ns)):
+        for v in values:
+            rough = torch.tensor([0.3], requires_grad=True)
+            if kind == "SG":
+                shader, base = SGShader(), random_sg_light(v)
+                make_light = lambda b=base: SGLight(b.axis, b.sharpness, b.amplitude.clone().requires_grad_(True))  # noqa: E731
+            else:
+                shader = MCShader(spp=v, mis=True, seed=0)
+                make_light = lambda: EnvMap(env.image.clone().requires_grad_(True))  # noqa: E731
+
+            def run(backward: bool):
+                mat = Material(albedo=torch.tensor([[0.6, 0.5, 0.4]]), roughness=rough, specular=0.5)
+                with torch.set_grad_enabled(backward):
+                    out = shader(build_gbuffer(sphere, cams, mat, frags), make_light())
+                    if backward:
+                        out.sum().backward()
+
+            for name, backward in (("forward", False), ("forward+backward", True)):
+                reps = repeats if (kind == "SG" or v <= 64) else 1
+                t, mem = measure(lambda: run(backward), reps, warmup=0 if reps == 1 else 1)
+                row = {"case": f"{kind} {'K' if kind == 'SG' else 'N'}={v}, {res}^2 sphere ({n_pix} px)", "pass": name,
+                       "ms": 1000 * t, "peak_mb": mem}
+                if kind == "SG" and not backward:
+                    row["flop_bound_ms"] = 1000 * SG_FLOP_PER_PIXEL_LOBE * n_pix * v / peak_flops()
+                rows.append(row)
+    return rows
+
+
+def peak_flops() -> float:
+    """Nominal fp32 peak of this CPU: cores x 2.5 GHz x 32 FLOP/cycle (AVX2, two FMA units)."""
+    return torch.get_num_threads() * 2.5e9 * 32
+
+
+def bench_raster(resolutions, face_counts, repeats: int) -> list[dict]:
+    rows = []
+    for faces in face_counts:
+        sub = max(0, round(math.log(faces / 20, 4)))
+        mesh = icosphere(sub)
+        for res in resolutions:
+            cams = Cameras.orbit(3.0, 20.0, 30.0, 45.0, res)
+            t, mem = measure(lambda: rasterize(mesh, cams), repeats)
+            rows.append({"case": f"rasterize {mesh.faces.shape[0]} faces at {res}^2", "pass": "forward", "ms": 1000 * t, "peak_mb": mem})
+    return rows
+
+
+def write_tables(rows: list[dict], out: Path) -> str:
+    out.mkdir(parents=True, exist_ok=True)
+    keys = ["case", "pass", "ms", "peak_mb", "flop_bound_ms"]
+    with open(out / "renderer.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    lines = ["| case | pass | time (ms) | peak RSS (MB) | SG FLOP bound (ms) |", "|---|---|---:|---:|---:|"]
+    for r in rows:
+        fb = f"{r['flop_bound_ms']:.2f}" if "flop_bound_ms" in r else ""
+        lines.append(f"| {r['case']} | {r['pass']} | {r['ms']:.1f} | {r['peak_mb']:.0f} | {fb} |")
+    text = "\n".join(lines)
+    (out / "renderer.md").write_text(text + "\n")
+    return text
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="results/bench")
+    ap.add_argument("--quick", action="store_true", help="tiny sizes, one repeat (smoke test)")
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args(argv)
+    torch.manual_seed(0)
+    if args.quick:
+        rows = bench_training(1) + bench_shading(32, [1, 4], [1, 4], 1) + bench_raster([32], [1000], 1)
+    else:
+        rows = (bench_training(args.repeats)
+                + bench_shading(256, [1, 2, 4, 8, 16, 32, 64, 128], [1, 4, 16, 64, 256, 1024], args.repeats)
+                + bench_raster([64, 128, 256], [1000, 10000, 100000], args.repeats))
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu, pid {os.getpid()}")
+    print(write_tables(rows, Path(args.out)))
+    print(f"\nSG FLOP bound assumes {SG_FLOP_PER_PIXEL_LOBE} FLOP per pixel-lobe at a nominal {peak_flops() / 1e9:.0f} GFLOP/s.")
+
+
+if __name__ == "__main__":
+    main()
