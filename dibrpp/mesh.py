@@ -121,7 +121,7 @@ def uniform_laplacian(faces: torch.Tensor, num_verts: int) -> torch.Tensor:
     vals = -1.0 / deg[e[:, 0]].clamp_min(1)
     idx = torch.cat([e.T, torch.arange(num_verts, device=faces.device).expand(2, -1)], 1)
     vals = torch.cat([vals, torch.ones(num_verts, device=faces.device)])
-    return torch.sparse_coo_tensor(idx, vals, (num_verts, num_verts)).coalesce()
+    return torch.sparse_coo_tensor(idx, vals, (num_verts, num_verts), check_invariants=False).coalesce()
 
 
 def cotangent_laplacian(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
@@ -139,7 +139,7 @@ def cotangent_laplacian(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tenso
     n = verts.shape[0]
     diag = torch.zeros(n, dtype=verts.dtype, device=verts.device).index_add(0, rows, -vals)
     idx = torch.cat([torch.stack([rows, cols]), torch.arange(n, device=verts.device).expand(2, -1)], 1)
-    return torch.sparse_coo_tensor(idx, torch.cat([vals, diag]), (n, n)).coalesce()
+    return torch.sparse_coo_tensor(idx, torch.cat([vals, diag]), (n, n), check_invariants=False).coalesce()
 
 
 def laplacian_smoothness(verts: torch.Tensor, laplacian: torch.Tensor) -> torch.Tensor:
