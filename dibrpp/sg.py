@@ -67,26 +67,41 @@ def _one_minus_exp_over_d(d: torch.Tensor) -> torch.Tensor:
     return torch.where(small, series, -torch.expm1(-2 * safe) / safe)
 
 
+def sg_product_integral(cos: torch.Tensor, sharpness1: torch.Tensor, sharpness2: torch.Tensor,
+                        one_minus_cos: torch.Tensor | None = None) -> torch.Tensor:
+    """∫ G1 G2 dw for unit amplitudes, from the cosine between the unit axes (everything broadcasts).
+
+    2 pi exp(d - lam1 - lam2) (1 - exp(-2d)) / d, d = |lam1 mu1 + lam2 mu2|, in a stable form (finite
+    values and gradients for lam up to ~1e6 in float32):
+      d^2 = (lam1 - lam2)^2 + 2 lam1 lam2 (1 + cos)      (a sum of non-negative terms),
+      d - lam1 - lam2 = -2 lam1 lam2 (1 - cos) / (d + lam1 + lam2)   (no cancellation).
+    Taking the cosine (a dot product, or a matrix product for many lobes) keeps shading cheap; pass
+    ``one_minus_cos`` (|mu1 - mu2|^2 / 2) when both lobes can be very sharp, as float32 ``1 - cos`` loses
+    the digits that matter there.
+    """
+    cos = cos.clamp(-1, 1)
+    one_minus_cos = 1 - cos if one_minus_cos is None else one_minus_cos
+    lam1, lam2 = sharpness1, sharpness2
+    d2 = (lam1 - lam2).square() + 2 * lam1 * lam2 * (1 + cos)
+    # d = 0 only for equal sharpness on opposite axes; flooring d^2 keeps sqrt's gradient finite there.
+    d = torch.sqrt(d2.clamp_min(1e-12))
+    exponent = -2 * lam1 * lam2 * one_minus_cos / (d + lam1 + lam2)
+    return 2 * math.pi * torch.exp(exponent) * _one_minus_exp_over_d(d)
+
+
 def sg_inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> torch.Tensor:
     """Exact integral of the product of two SG lobes, ∫ G1 G2 dw -> (..., C).
 
-    2 pi a1 a2 exp(d - lam1 - lam2) (1 - exp(-2d)) / d, d = |lam1 mu1 + lam2 mu2|, for unit axes.
-    Stable form (finite values and gradients for lam up to ~1e6 in float32):
-      d^2 = (lam1 - lam2)^2 + lam1 lam2 |mu1 + mu2|^2       (a sum of non-negative terms),
-      d - lam1 - lam2 = -lam1 lam2 |mu1 - mu2|^2 / (d + lam1 + lam2)   (no cancellation).
-    Axes (..., 3), sharpness (...), amplitudes (..., C); everything broadcasts (module docstring).
+    Axes (..., 3) (unit), sharpness (...), amplitudes (..., C); everything broadcasts (module
+    docstring). See :func:`sg_product_integral` for the stable form.
     """
     axis1, axis2 = torch.as_tensor(axis1), torch.as_tensor(axis2)
     _check_last("axis1", axis1, 3)
     _check_last("axis2", axis2, 3)
     lam1, lam2 = torch.as_tensor(sharpness1).to(axis1), torch.as_tensor(sharpness2).to(axis1)
-    sum2 = (axis1 + axis2).square().sum(-1)
-    diff2 = (axis1 - axis2).square().sum(-1)
-    d2 = (lam1 - lam2).square() + lam1 * lam2 * sum2
-    # d = 0 only for equal sharpness on opposite axes; flooring d^2 keeps sqrt's gradient finite there.
-    d = torch.sqrt(d2.clamp_min(1e-12))
-    exponent = -lam1 * lam2 * diff2 / (d + lam1 + lam2)
-    scale = 2 * math.pi * torch.exp(exponent) * _one_minus_exp_over_d(d)
+    one_plus_cos = 0.5 * (axis1 + axis2).square().sum(-1)
+    one_minus_cos = 0.5 * (axis1 - axis2).square().sum(-1)
+    scale = sg_product_integral(one_plus_cos - 1, lam1, lam2, one_minus_cos)
     return amplitude1 * amplitude2 * scale.unsqueeze(-1)
 
 

@@ -95,20 +95,29 @@ class MCShader:
         return total
 
 
-def _sg_lobes(light, batch: torch.Tensor):
-    """World-frame SG lobes gathered per pixel: axis (N, K, 3), sharpness (N, K), amplitude (N, K, 3)."""
-    axis, lam, amp = light.world_axis(), light.sharpness, light.amplitude
-    pick = lambda t: t[batch] if t.shape[0] > 1 else t.expand((batch.shape[0],) + t.shape[1:])  # noqa: E731
-    return pick(axis), pick(lam), pick(amp)
+def sg_convolve(light, axis: torch.Tensor, sharpness: torch.Tensor, g: "GBuffer") -> torch.Tensor:
+    """(N, 3) sum over the light's lobes of the integral of (unit-amplitude SG(axis, sharpness) x lobe).
+
+    axis (N, 3), sharpness (N,) per pixel. Pixels are laid out per image so the cosines to all K lobes
+    are one batched matrix product and the sum over lobes against the RGB amplitudes another.
+    """
+    b = g.num_images
+    light_axis = light.world_axis().expand(b, -1, -1)  # (B, K, 3)
+    light_lam = light.sharpness.expand(b, -1).unsqueeze(1)  # (B, 1, K)
+    light_amp = light.amplitude.expand(b, -1, -1)  # (B, K, 3)
+
+    def convolve(packed):  # (B, M, 4): axis and sharpness
+        cos = packed[..., :3] @ light_axis.transpose(1, 2)  # (B, M, K)
+        scale = sgmath.sg_product_integral(cos, packed[..., 3:], light_lam)
+        return scale @ light_amp
+
+    return per_image(convolve, torch.cat([axis, sharpness.unsqueeze(-1)], -1), g.batch, b)
 
 
-def sg_cosine_irradiance(normal: torch.Tensor, light, batch: torch.Tensor) -> torch.Tensor:
+def sg_cosine_irradiance(normal: torch.Tensor, light, g: "GBuffer") -> torch.Tensor:
     """(N, 3) approximate irradiance: sum_k <cosine SG at n, G_k>, clamped >= 0."""
-    axis, lam, amp = _sg_lobes(light, batch)
-    cos_lam = normal.new_tensor(sgmath.COSINE_SG_SHARPNESS)
-    inner = sgmath.sg_inner_product(normal.unsqueeze(1), cos_lam, normal.new_tensor(sgmath.COSINE_SG_AMPLITUDE),
-                                    axis, lam, amp)  # (N, K, 3)
-    return inner.sum(1).clamp_min(0)
+    lam = normal.new_full(normal.shape[:1], sgmath.COSINE_SG_SHARPNESS)
+    return (sgmath.COSINE_SG_AMPLITUDE * sg_convolve(light, normal, lam, g)).clamp_min(0)
 
 
 class SGShader:
@@ -116,10 +125,9 @@ class SGShader:
 
     def __call__(self, g: GBuffer, light) -> torch.Tensor:
         p = g.point
-        diffuse = p.diffuse_weight() / math.pi * sg_cosine_irradiance(p.normal, light, g.batch)
-        axis, lam, amp = _sg_lobes(light, g.batch)
+        diffuse = p.diffuse_weight() / math.pi * sg_cosine_irradiance(p.normal, light, g)
         w_axis, w_lam, w_amp = sgmath.warp_ndf_sg(p.normal, p.view, p.alpha)
-        inner = sgmath.sg_inner_product(w_axis.unsqueeze(1), w_lam.unsqueeze(1), w_amp.view(-1, 1, 1), axis, lam, amp)
+        inner = w_amp.unsqueeze(-1) * sg_convolve(light, w_axis, w_lam, g)
         n_dot_v = p.n_dot_v
         n_dot_l = (p.normal * w_axis).sum(-1)
         g_term = geometry_term(n_dot_v, n_dot_l.clamp(1e-4, 1), p.alpha, p.geometry)
@@ -127,7 +135,7 @@ class SGShader:
         # the 1/(n.l) of eq. (1) and vanishes for lobes below the horizon.
         spec_scale = g_term * (n_dot_l > 0) / (4 * n_dot_v)
         fresnel = p.fresnel(n_dot_v.unsqueeze(1)).squeeze(1)
-        specular = inner.sum(1) * fresnel * spec_scale.unsqueeze(-1)
+        specular = inner * fresnel * spec_scale.unsqueeze(-1)
         return diffuse + specular
 
 
@@ -139,7 +147,7 @@ class SHShader:
         if hasattr(light, "coeffs"):
             irr = per_image(light.irradiance, p.normal, g.batch, g.num_images)
         else:
-            irr = sg_cosine_irradiance(p.normal, light, g.batch)
+            irr = sg_cosine_irradiance(p.normal, light, g)
         return p.albedo / math.pi * irr
 
 

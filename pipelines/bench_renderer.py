@@ -71,8 +71,9 @@ def synthetic_envmap(h: int = 128, w: int = 256) -> EnvMap:
 
 
 def bench_training(repeats: int) -> list[dict]:
-    sphere = icosphere(3, radius=1.0)
-    cams = Cameras.orbit(3.0, 27.0, torch.arange(32.0) * (360 / 32), 40.0, 64)
+    # the encoder's template (radius 12) seen like the datasets: distance 60, elevation 27, fov 39.6
+    sphere = icosphere(3, radius=12.0)
+    cams = Cameras.orbit(60.0, 27.0, torch.arange(32.0) * (360 / 32), 39.6, 64)
     renderer = Renderer("sg", raster_settings=RasterSettings(cull_backfaces=True))
     light = random_sg_light(32, batch=32)
     verts = sphere.verts.expand(32, -1, -1).clone().requires_grad_(True)
