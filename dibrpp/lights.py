@@ -440,12 +440,15 @@ def _initial_axes(dirs: torch.Tensor, target: torch.Tensor, num_lobes: int, shar
 
 
 def _nonnegative_least_squares(basis: torch.Tensor, weight: torch.Tensor, target: torch.Tensor,
-                               iters: int = 200) -> torch.Tensor:
+                               amp: torch.Tensor | None = None, iters: int = 200) -> torch.Tensor:
     """argmin_{a >= 0} sum w (G a - L)^2 for a non-negative basis G (B, N, K), targets L (B, N, C),
-    by multiplicative updates (Lee & Seung), which keep a >= 0 and never increase the error."""
+    by multiplicative updates (Lee & Seung): they keep a >= 0 and never increase the error.
+    ``amp`` warm-starts; it is floored slightly above 0 so that a lobe switched off can come back."""
     gram = basis.mT @ (basis * weight)  # (B, K, K)
-    rhs = (basis.mT @ (target * weight)).clamp_min(0)  # (B, K, C); negative targets cannot be met
-    amp = torch.ones_like(rhs) * (rhs.sum(1, keepdim=True) / gram.sum((1, 2)).view(-1, 1, 1).clamp_min(1e-30))
+    rhs = (basis.mT @ (target * weight)).clamp_min(0)  # (B, K, C); negative radiance cannot be met
+    if amp is None:
+        amp = torch.ones_like(rhs) * (rhs.sum(1, keepdim=True) / gram.sum((1, 2)).view(-1, 1, 1).clamp_min(1e-30))
+    amp = amp.clamp_min(1e-6 * float(amp.max().clamp_min(1e-30)))
     for _ in range(iters):
         amp = amp * rhs / (gram @ amp).clamp_min(1e-30)
     return amp
@@ -455,13 +458,14 @@ def fit_sg_to_envmap(env: EnvMap, num_lobes: int, iters: int = 300, lr: float = 
                      resolution: tuple[int, int] = (64, 128)) -> SGLight:
     """Fit ``num_lobes`` SG lobes per map to an env map, in the map's frame (same ``world_to_light``).
 
-    The map is area-averaged down to at most ``resolution``. Initial axes: see :func:`_initial_axes`;
-    initial sharpness from the lobe count; amplitudes by least squares (clamped >= 0). Then Adam
-    (learning rate ``lr``, cosine-decayed over ``iters`` steps) minimises the solid-angle-weighted
-    relative L2 error sum w (G - L)^2 / sum w L^2, with sharpness and amplitude as logs (so > 0) and
-    sharpness capped so that a lobe is no narrower than a texel. Deterministic for a seed; not
-    differentiable w.r.t. the map. The result's ``fit_rel_error`` (B,) is the square root of that
-    error on the fitting grid.
+    Minimises the solid-angle-weighted relative L2 error sum w (G - L)^2 / sum w L^2 on the map
+    area-averaged down to at most ``resolution``. Initial axes: :func:`_initial_axes`; initial
+    sharpness from the lobe count. Adam (``lr``, cosine-decayed over ``iters`` steps) moves axes and
+    log-sharpness (so > 0, capped so that a lobe is no narrower than a texel); at every step the
+    amplitudes are the non-negative least-squares optimum for the current lobes (variable
+    projection: amplitude is the easy, convex part of the problem). Deterministic for a seed; not
+    differentiable w.r.t. the map. The result's ``fit_rel_error`` (B,) is the square root of the
+    final error on the fitting grid.
     """
     if num_lobes < 1 or iters < 0:
         raise ValueError(f"need num_lobes >= 1 and iters >= 0, got {num_lobes}, {iters}")
@@ -474,38 +478,33 @@ def fit_sg_to_envmap(env: EnvMap, num_lobes: int, iters: int = 300, lr: float = 
 
     max_lam = (h / math.pi) ** 2  # lobe std 1/sqrt(lam) >= one texel
     lam0 = min(max(num_lobes / 3.0, 1.0), max_lam)
-    axis = _initial_axes(dirs, target, num_lobes, lam0, seed)
+    axis = _initial_axes(dirs, target, num_lobes, lam0, seed).clone().requires_grad_(True)
+    log_lam = torch.full((b, num_lobes), math.log(lam0), dtype=target.dtype, device=target.device, requires_grad=True)
     dirs = dirs.unsqueeze(0)  # (1, N, 3)
-    log_lam = torch.full((b, num_lobes), math.log(lam0), dtype=target.dtype, device=target.device)
 
-    basis = sg_lobe_values(dirs, axis.unsqueeze(1), lam0)  # (B, N, K)
-    amp0 = _nonnegative_least_squares(basis, weight, target)
-    floor = 1e-3 * target.mean((1, 2)).clamp_min(1e-12).view(b, 1, 1)
-    log_amp = torch.maximum(amp0, floor).log()
+    def lobes():  # (B, N, K)
+        return sg_lobe_values(dirs, F.normalize(axis, dim=-1).unsqueeze(1), log_lam.exp().unsqueeze(1))
 
-    params = [axis.clone(), log_lam, log_amp]
-    for p in params:
-        p.requires_grad_(True)
+    def rel_sq_error(basis, amp):
+        return (weight * (basis @ amp - target).square()).sum((1, 2)) / norm
 
-    def rel_sq_error():
-        axis, log_lam, log_amp = params
-        pred = sg_eval(dirs, F.normalize(axis, dim=-1).unsqueeze(1), log_lam.exp().unsqueeze(1),
-                       log_amp.exp().unsqueeze(1))
-        return (weight * (pred - target).square()).sum((1, 2)) / norm
-
+    amp = None
     with torch.enable_grad():
-        opt = torch.optim.Adam(params, lr=lr)
+        opt = torch.optim.Adam([axis, log_lam], lr=lr)
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(iters, 1))
         for _ in range(iters):
             opt.zero_grad(set_to_none=True)
-            rel_sq_error().sum().backward()
+            basis = lobes()
+            with torch.no_grad():
+                amp = _nonnegative_least_squares(basis, weight, target, amp, iters=200 if amp is None else 10)
+            rel_sq_error(basis, amp).sum().backward()
             opt.step()
             sched.step()
             with torch.no_grad():
-                params[1].clamp_(max=math.log(max_lam))
+                log_lam.clamp_(max=math.log(max_lam))
     with torch.no_grad():
-        err = rel_sq_error().sqrt()
-        axis, log_lam, log_amp = (p.detach() for p in params)
-        light = SGLight(axis.clone(), log_lam.exp(), log_amp.exp(), env.world_to_light)
-    light.fit_rel_error = err
+        basis = lobes()
+        amp = _nonnegative_least_squares(basis, weight, target, amp, iters=200 if amp is None else 50)
+        light = SGLight(F.normalize(axis.detach(), dim=-1), log_lam.detach().exp(), amp, env.world_to_light)
+        light.fit_rel_error = rel_sq_error(basis, amp).sqrt()
     return light

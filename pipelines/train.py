@@ -1,0 +1,300 @@
+"""Single-image inverse rendering with the multi-view consistency loss (Sec. E.1-E.2).
+
+    python -m pipelines.train --dataset data/glossy --shading sg --seed 0 --out runs/glossy/sg_s0
+    torchrun --nproc_per_node 2 -m pipelines.train ...        # data-parallel (gloo on CPU, NCCL on GPU)
+
+Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape/texture/material/light
+from both views and renders every prediction in both views with the light of the view it is rendered
+in (eq. 8). Checkpoints are atomic; ``--resume`` continues bit-for-bit (batches are drawn from a
+generator seeded by (seed, iteration), and the RNG state is saved).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+from dibrpp import Cameras, RasterSettings, Renderer
+from dibrpp.io import DataError, atomic_path, write_png
+from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
+
+from .losses import gradient_loss, image_l1, iou_loss, to_display
+from .model import Encoder, ModelConfig
+
+
+@dataclass
+class TrainConfig:
+    dataset: str = "data/glossy"
+    out: str = "runs/run"
+    shading: str = "sg"
+    lobes: int = 32
+    seed: int = 0
+    iterations: int = 1500
+    batch_objects: int = 8
+    lr: float = 3e-4
+    spp: int = 8  # MC samples per pixel during training
+    image_size: int = 64
+    w_image: float = 1.0
+    w_iou: float = 1.0
+    w_laplacian: float = 0.02
+    w_gradient: float = 0.5
+    log_every: int = 10
+    snapshot_every: int = 250
+    checkpoint_every: int = 100
+    predict_metallic: bool = False
+    threads: int = 0  # torch threads per process (0: torch's default)
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "TrainConfig":
+        presets = {
+            "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~10-15 min
+            "smoke": dict(iterations=12, batch_objects=2, log_every=2, snapshot_every=6, checkpoint_every=4, spp=2),
+            "paper": dict(iterations=200_000, image_size=256, batch_objects=16, spp=64, snapshot_every=2000,
+                          checkpoint_every=1000, log_every=50),
+        }
+        if name not in presets:
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(presets)}")
+        return cls(**{**presets[name], **overrides})
+
+
+# ----------------------------------------------------------------------------- data
+
+class TrainingData:
+    """All training views decoded once into tensors: display-space RGBA images and cameras."""
+
+    def __init__(self, root: str, image_size: int, split: str = "train"):
+        from .dataset import MultiViewDataset
+
+        ds = MultiViewDataset(root, split=split, views_per_item=1, image="linear", with_envmap=False)
+        if ds.resolution != image_size:
+            raise DataError(f"{root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
+                            f"{image_size}; pass --image-size {ds.resolution}")
+        n_samples, n_views = len(ds.samples), ds.num_views
+        imgs, w2c, fov = [], [], []
+        for s in range(n_samples):
+            for v in range(n_views):
+                item = ds[s * n_views + v]
+                rgba = item["image"][0]
+                imgs.append(torch.cat([to_display(rgba[..., :3]), rgba[..., 3:]], -1))
+                w2c.append(item["world_to_camera"][0])
+                fov.append(item["fov"][0])
+        self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
+        self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
+        self.fov = torch.stack(fov).view(n_samples, n_views)
+        self.resolution = image_size
+        self.num_samples, self.num_views = n_samples, n_views
+
+    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1) -> dict:
+        """The iteration's batch, a pure function of (seed, iteration, rank): resumes are exact."""
+        g = torch.Generator().manual_seed(seed * 1_000_003 + iteration)
+        samples = torch.randint(self.num_samples, (size * world,), generator=g)[rank::world]
+        v1 = torch.randint(self.num_views, (size * world,), generator=g)[rank::world]
+        v2 = (v1 + 1 + torch.randint(self.num_views - 1, (size * world,), generator=g)[rank::world]) % self.num_views
+        views = torch.stack([v1, v2], 1)
+        s = samples.unsqueeze(1).expand(-1, 2)
+        return dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views])
+
+
+# ----------------------------------------------------------------------------- one step
+
+def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian) -> tuple[torch.Tensor, dict, dict]:
+    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots)."""
+    img = batch["image"]  # (B, 2, S, S, 4) display RGB + alpha
+    b, s = img.shape[0], img.shape[2]
+    flat = img.reshape(b * 2, s, s, 4)
+    pred = model(flat.permute(0, 3, 1, 2))  # prediction from every view: index 2i + j
+    # render prediction i (from view i) in view j with the light predicted from view j
+    src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
+    dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
+    w2c = batch["world_to_camera"].reshape(b * 2, 4, 4)[dst]
+    cams = Cameras(w2c, batch["fov"].reshape(-1)[dst], s)
+    shape_pred = pred.select(src)
+    light = pred.select(dst).light().in_frame(w2c[:, :3, :3])
+    out = renderer(shape_pred.meshes(), cams, shape_pred.material(), light)
+    target = flat[dst]
+    rgb = to_display(out.rgb)
+    terms = {
+        "image": image_l1(rgb, target[..., :3], target[..., 3]),
+        "iou": iou_loss(out.alpha, target[..., 3]),
+        "laplacian": laplacian_smoothness(pred.offsets + pred.template.verts, laplacian) / pred.config.template_radius ** 2,
+        "gradient": gradient_loss(rgb, target[..., :3] * target[..., 3:]),
+    }
+    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
+    total = sum(weights[k] * v for k, v in terms.items())
+    return total, terms, dict(input=flat, render=rgb, alpha=out.alpha, pred=pred, target=target)
+
+
+def check_finite(terms: dict) -> None:
+    for name, value in terms.items():
+        if not torch.isfinite(value):
+            raise FloatingPointError(f"the {name} loss became {value.item()}; stopping (the last good checkpoint is kept)")
+
+
+# ----------------------------------------------------------------------------- run
+
+def _setup_distributed():
+    if "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def save_checkpoint(path: Path, model, opt, iteration: int, config: TrainConfig) -> None:
+    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": iteration,
+             "config": asdict(config), "torch_rng": torch.get_rng_state()}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def make_model(config: TrainConfig) -> Encoder:
+    return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
+                               predict_metallic=config.predict_metallic))
+
+
+def make_renderer(config: TrainConfig, seed: int) -> Renderer:
+    shading = {"sh-sg": "sh-sg"}.get(config.shading, config.shading)
+    return Renderer(shading, spp=config.spp, seed=seed, raster_settings=RasterSettings(cull_backfaces=True))
+
+
+def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
+    rank, world = _setup_distributed()
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    data = TrainingData(config.dataset, config.image_size)
+    model = make_model(config)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    ckpt = out / "checkpoint.pt"
+    start = 0
+    if resume and ckpt.exists():
+        state = torch.load(ckpt, weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        torch.set_rng_state(state["torch_rng"])
+        start = state["iteration"]
+    elif not resume and ckpt.exists():
+        raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+    ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    laplacian = uniform_laplacian(model.faces, model.template_verts.shape[1])
+    if rank == 0:
+        (out / "config.json").write_text(json.dumps(asdict(config), indent=2))
+    log_path = out / "log.csv"
+    if rank == 0 and start == 0:
+        log_path.write_text("iteration,total,image,iou,laplacian,gradient,seconds\n")
+    from tqdm import tqdm
+
+    bar = tqdm(range(start, config.iterations), initial=start, total=config.iterations, disable=not progress or rank != 0,
+               desc=f"{Path(config.dataset).name}/{config.shading}", unit="it")
+    t_start = time.perf_counter()
+    for it in bar:
+        renderer = make_renderer(config, seed=config.seed * 7919 + it)  # MC noise differs per iteration, reproducibly
+        batch = data.batch(it, config.batch_objects, config.seed, rank, world)
+        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian)
+        check_finite({"total": total, **terms})
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        done = it + 1
+        if rank == 0:
+            if done % config.log_every == 0 or done == config.iterations:
+                with open(log_path, "a") as f:
+                    f.write(",".join([str(done), f"{total.item():.6f}"] + [f"{terms[k].item():.6f}" for k in
+                                     ("image", "iou", "laplacian", "gradient")] + [f"{time.perf_counter() - t_start:.2f}"]) + "\n")
+                bar.set_postfix(loss=f"{total.item():.4f}", img=f"{terms['image'].item():.4f}", iou=f"{terms['iou'].item():.3f}")
+            if done % config.snapshot_every == 0 or done == config.iterations:
+                write_snapshot(out / "snapshots" / f"iter_{done:06d}.png", snap)
+            if done % config.checkpoint_every == 0 or done == config.iterations:
+                save_checkpoint(ckpt, model, opt, done, config)
+    if rank == 0:
+        plot_losses(log_path, out / "loss.png")
+        summary = {"iterations": config.iterations, "seconds": time.perf_counter() - t_start,
+                   "seconds_per_iteration": (time.perf_counter() - t_start) / max(1, config.iterations - start)}
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if world > 1:
+        dist.destroy_process_group()
+    return {"model": model, "out": out}
+
+
+def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
+    """Input | re-render | predicted albedo (front view of the texture) | predicted light, for a few items."""
+    from dibrpp.conventions import linear_to_srgb
+
+    n = min(rows, snap["input"].shape[0] // 2)
+    pred = snap["pred"]
+    s = snap["input"].shape[1]
+    tiles = []
+    for i in range(n):
+        k = 2 * i
+        inp = snap["input"][k, ..., :3] * snap["input"][k, ..., 3:]
+        ren = snap["render"][2 * k].detach()
+        tex = torch.nn.functional.interpolate(linear_to_srgb(pred.texture[k].detach()).permute(2, 0, 1)[None], size=(s, 2 * s))[0].permute(1, 2, 0)
+        light = pred.select([k]).light().to_envmap(s, 2 * s).image[0].detach()
+        light = linear_to_srgb(light / light.max().clamp_min(1e-6))
+        tiles.append(torch.cat([inp, ren, tex, light], 1))
+    write_png(path, torch.cat(tiles, 0), srgb=False)
+
+
+def plot_losses(log_path: Path, png_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(log_path) as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    its = [int(r["iteration"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for key in ("total", "image", "iou", "laplacian", "gradient"):
+        ax.plot(its, [float(r[key]) for r in rows], label=key)
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(png_path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--preset", default="cpu", help="cpu (default) | smoke | paper")
+    ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
+    for f in fields(TrainConfig):
+        if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads"):
+            ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
+    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    overrides = json.loads(Path(args.config).read_text()) if args.config else {}
+    overrides.update({k: v for k, v in vars(args).items() if k in {f.name for f in fields(TrainConfig)} and v is not None})
+    try:
+        config = TrainConfig.preset(args.preset, **overrides)
+        if config.shading not in ("mc", "sg", "sh", "sh-sg"):
+            raise ValueError(f"--shading {config.shading}: choose mc, sg, sh or sh-sg")
+        if not Path(config.dataset, "manifest.json").exists():
+            raise DataError(f"no dataset at {config.dataset} (manifest.json missing); run `make data` first")
+        train(config, resume=args.resume, progress=not args.no_progress)
+    except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
