@@ -175,8 +175,9 @@ class ShadingPoint:
         alpha = self.alpha.unsqueeze(1)
         # GGX half vector by inverse transform: tan^2(theta) = alpha^2 xi / (1 - xi)
         xi = u[..., 0].clamp(0, 1 - 1e-7)
-        cos_h = torch.rsqrt(1 + alpha * alpha * xi / (1 - xi))
-        sin_h = torch.sqrt((1 - cos_h * cos_h).clamp_min(0))
+        ratio = torch.sqrt(xi / (1 - xi))
+        cos_h = torch.rsqrt(1 + (alpha * ratio) ** 2)
+        sin_h = alpha * ratio * cos_h  # = sqrt(1 - cos^2), with a finite gradient at cos = 1
         phi = 2 * math.pi * u[..., 1]
         h_local = torch.stack([sin_h * torch.cos(phi), sin_h * torch.sin(phi), cos_h], -1)
         h = _to_world(h_local, t, b, n)

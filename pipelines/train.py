@@ -139,6 +139,12 @@ def check_finite(terms: dict) -> None:
             raise FloatingPointError(f"the {name} loss became {value.item()}; stopping (the last good checkpoint is kept)")
 
 
+def check_finite_gradients(model) -> None:
+    for name, p in model.named_parameters():
+        if p.grad is not None and not torch.isfinite(p.grad).all():
+            raise FloatingPointError(f"the gradient of {name} became non-finite; stopping (the last good checkpoint is kept)")
+
+
 # ----------------------------------------------------------------------------- run
 
 def _setup_distributed():
@@ -205,6 +211,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
         total.backward()
+        check_finite_gradients(model)
         opt.step()
         done = it + 1
         if rank == 0:

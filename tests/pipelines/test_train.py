@@ -1,0 +1,85 @@
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from pipelines.train import TrainConfig, TrainingData, make_model, make_renderer, multiview_losses, train
+from dibrpp.mesh import uniform_laplacian
+
+
+def config(data, out, **kw):
+    base = dict(dataset=str(data), out=str(out), image_size=32, iterations=8, batch_objects=2, spp=2, log_every=1,
+                snapshot_every=4, checkpoint_every=4, lr=1e-3, threads=1)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+@pytest.mark.parametrize("shading", ["mc", "sg", "sh", "sh-sg"])
+def test_every_shading_method_trains_and_the_loss_goes_down(tiny_glossy, tmp_path, shading):
+    cfg = config(tiny_glossy, tmp_path / shading, shading=shading, iterations=30, lobes=8, batch_objects=4, lr=2e-3)
+    train(cfg, progress=False)
+    rows = [line.split(",") for line in (tmp_path / shading / "log.csv").read_text().splitlines()[1:]]
+    first = sum(float(r[1]) for r in rows[:5]) / 5
+    last = sum(float(r[1]) for r in rows[-5:]) / 5
+    assert last < 0.9 * first, (first, last)
+    for name in ("checkpoint.pt", "loss.png", "summary.json", "snapshots/iter_000030.png"):
+        assert (tmp_path / shading / name).exists()
+
+
+def test_gradients_reach_every_predicted_quantity(tiny_glossy):
+    for shading in ("mc", "sg", "sh"):
+        cfg = config(tiny_glossy, "unused", shading=shading, lobes=4)
+        torch.manual_seed(0)
+        model = make_model(cfg)
+        data = TrainingData(cfg.dataset, cfg.image_size)
+        lap = uniform_laplacian(model.faces, model.template_verts.shape[1])
+        total, terms, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 2, 0), cfg, lap)
+        pred = snap["pred"]
+        # SH shading is Lambertian (DIB-R): roughness and specular do not enter it, by design
+        material = [pred.roughness, pred.specular] if shading != "sh" else []
+        tensors = [pred.offsets, pred.texture] + material + list(pred.light_params.values())
+        for t in tensors:
+            t.retain_grad()
+        total.backward()
+        for t in tensors:
+            assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0, shading
+
+
+def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
+    full = config(tiny_glossy, tmp_path / "full", shading="mc")
+    train(full, progress=False)
+    part = config(tiny_glossy, tmp_path / "part", shading="mc", iterations=4)
+    train(part, progress=False)  # a run killed after its checkpoint at iteration 4
+    train(config(tiny_glossy, tmp_path / "part", shading="mc"), resume=True, progress=False)
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_cli_errors_are_clear(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pipelines.train", "--dataset", str(tmp_path / "nope"), "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True)
+    assert r.returncode == 2 and "make data" in r.stderr
+
+
+def test_ddp_with_two_cpu_processes(tiny_glossy, tmp_path):
+    torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
+    out = tmp_path / "ddp"
+    r = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "pipelines.train", "--preset", "smoke",
+                        "--dataset", str(tiny_glossy), "--out", str(out), "--image-size", "32", "--iterations", "4",
+                        "--shading", "sg", "--lobes", "4", "--threads", "1", "--no-progress"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (out / "checkpoint.pt").exists() and len((out / "log.csv").read_text().splitlines()) > 1
+
+
+def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tiny_glossy, tmp_path):
+    out = tmp_path / "nan"
+    train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=4), progress=False)
+    before = (out / "checkpoint.pt").read_bytes()
+    with pytest.raises(FloatingPointError, match="total loss became nan"):
+        train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8, w_gradient=float("nan")), resume=True, progress=False)
+    assert (out / "checkpoint.pt").read_bytes() == before
