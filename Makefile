@@ -8,11 +8,23 @@ PIP := $(VENV)/bin/pip
 BPY_SYSTEM_LIBS := libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libxext6 libsm6 libice6 libgl1
 PYTEST_ARGS ?=
 
-.PHONY: setup system-libs test test-fast bench bench-renderer clean help
+DATASETS := metallic glossy diffuse
+DATA ?= data
+RUNS ?= runs
+# Shading methods trained per dataset (the paper's MC and SG, DIB-R's SH baseline), then the seeds of
+# the main model (SG) for the variance study; seed 0 is the main SG run itself.
+METHODS ?= sg mc sh
+SEEDS ?= 1 2
+TRAIN_ARGS ?=
+
+.PHONY: setup system-libs test bench bench-renderer data $(addprefix data-,$(DATASETS)) \
+        $(addprefix train-,$(DATASETS)) clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the test suite (includes Cycles comparisons)"
+	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
+	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make bench-renderer   renderer speed/memory benchmark (prints a table, writes results/bench/)"
 
 setup: system-libs $(VENV)/.installed
@@ -38,6 +50,23 @@ $(VENV)/.installed: pyproject.toml
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 $(PYTEST_ARGS)
+
+data: $(addprefix data-,$(DATASETS))
+
+# Resumable: rerunning skips finished samples and redoes partial ones.
+data-%: $(VENV)/.installed
+	$(PY) -m datagen --dataset $* --out $(DATA)/$*
+
+train-%: $(VENV)/.installed
+	@test -f $(DATA)/$*/manifest.json || { echo "error: no dataset in $(DATA)/$*; run 'make data' (or 'make data-$*') first"; exit 1; }
+	@set -e; for m in $(METHODS); do \
+	  echo "== $* / $$m / seed 0"; \
+	  $(PY) -m pipelines.train --dataset $(DATA)/$* --shading $$m --seed 0 --out $(RUNS)/$*/$$m-seed0 --resume $(TRAIN_ARGS); \
+	done; \
+	for s in $(SEEDS); do \
+	  echo "== $* / sg / seed $$s"; \
+	  $(PY) -m pipelines.train --dataset $(DATA)/$* --shading sg --seed $$s --out $(RUNS)/$*/sg-seed$$s --resume $(TRAIN_ARGS); \
+	done
 
 bench-renderer: $(VENV)/.installed
 	$(PY) -m pipelines.bench_renderer --out results/bench

@@ -27,6 +27,9 @@ import json
 import math
 import multiprocessing as mp
 import os
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -189,6 +192,9 @@ def _init_worker(threads: int) -> None:
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 1)
     os.close(devnull)
+    # A parent that imported bpy has Blender's script folders (holding a pure-Python ``bpy`` package)
+    # on sys.path, and spawn copies that path; drop them so the real module is found.
+    sys.path[:] = [p for p in sys.path if f"{os.sep}bpy{os.sep}" not in p]
     import bpy  # noqa: F401  (pay the import once per worker)
 
 
@@ -305,9 +311,28 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
                 total_s=total, cycles_s=cs.render_seconds)
 
 
-def _run_task(args):
-    fn, a = args
-    return fn(*a)
+def _completed(tasks, workers: int, threads: int, recycle: int):
+    """Results of ``tasks`` [(fn, args)] as they finish; a failed task stops the run with its error.
+
+    Workers are recycled (bpy leaks memory) by running the tasks in batches, each in a fresh pool. The
+    pool's own ``max_tasks_per_child`` deadlocks on Python 3.11 when a worker retires, so it is not used.
+    """
+    ctx = mp.get_context("spawn")
+    batch = max(1, workers) * max(1, recycle)
+    for start in range(0, len(tasks), batch):
+        with ProcessPoolExecutor(max(1, workers), mp_context=ctx, initializer=_init_worker,
+                                 initargs=(threads,)) as pool:
+            futures = [pool.submit(fn, *a) for fn, a in tasks[start:start + batch]]
+            try:
+                for fut in as_completed(futures):
+                    try:
+                        yield fut.result()
+                    except BrokenProcessPool as e:
+                        raise RuntimeError("a datagen worker process died (crash or out of memory); rerun the "
+                                           "same command to resume, finished samples are kept") from e
+            finally:
+                for f in futures:
+                    f.cancel()
 
 
 # ----------------------------------------------------------------------------- verification
@@ -398,26 +423,24 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
     threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     t_start = time.perf_counter()
     stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
-    ctx = mp.get_context("spawn")
-    with ctx.Pool(max(1, workers), initializer=_init_worker, initargs=(threads,), maxtasksperchild=max(1, recycle)) as pool:
-        assets = [(task_envmap, (str(out), cfg, e, p["env_kind"][e])) for e in my_envs]
-        assets += [(task_object, (str(out), cfg, o["index"], o)) for o in my_objects]
-        bar = tqdm(total=len(assets), desc=f"{cfg.dataset}: assets", unit="asset", disable=not progress)
-        for r in pool.imap_unordered(_run_task, assets):
-            stats["asset_s"] += r.get("seconds", 0.0)
-            bar.update(1)
-        bar.close()
-        samples = [(task_sample, (str(out), cfg, o["index"], e, o)) for o in my_objects for e in o["envmaps"]]
-        bar = tqdm(total=len(samples) * cfg.views, desc=f"{cfg.dataset}: views", unit="view", disable=not progress)
-        for r in pool.imap_unordered(_run_task, samples):
-            if r["skipped"]:
-                stats["skipped_samples"] += 1
-            else:
-                stats["cycles_s"] += r["cycles_s"]
-                stats["sample_s"] += r["total_s"]
-                stats["rendered_views"] += r["rendered"]
-            bar.update(r["views"])
-        bar.close()
+    assets = [(task_envmap, (str(out), cfg, e, p["env_kind"][e])) for e in my_envs]
+    assets += [(task_object, (str(out), cfg, o["index"], o)) for o in my_objects]
+    bar = tqdm(total=len(assets), desc=f"{cfg.dataset}: assets", unit="asset", disable=not progress)
+    for r in _completed(assets, workers, threads, recycle):
+        stats["asset_s"] += r.get("seconds", 0.0)
+        bar.update(1)
+    bar.close()
+    samples = [(task_sample, (str(out), cfg, o["index"], e, o)) for o in my_objects for e in o["envmaps"]]
+    bar = tqdm(total=len(samples) * cfg.views, desc=f"{cfg.dataset}: views", unit="view", disable=not progress)
+    for r in _completed(samples, workers, threads, recycle):
+        if r["skipped"]:
+            stats["skipped_samples"] += 1
+        else:
+            stats["cycles_s"] += r["cycles_s"]
+            stats["sample_s"] += r["total_s"]
+            stats["rendered_views"] += r["rendered"]
+        bar.update(r["views"])
+    bar.close()
     wall = time.perf_counter() - t_start
     stats.update(wall_s=wall, workers=workers, threads_per_worker=threads, shard=f"{si}/{sn}",
                  render_overhead=(stats["sample_s"] - stats["cycles_s"]) / stats["cycles_s"] if stats["cycles_s"] else None,

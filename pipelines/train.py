@@ -197,8 +197,12 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     if rank == 0:
         (out / "config.json").write_text(json.dumps(asdict(config), indent=2))
     log_path = out / "log.csv"
-    if rank == 0 and start == 0:
-        log_path.write_text("iteration,total,image,iou,laplacian,gradient,seconds\n")
+    if rank == 0:
+        _prepare_log(log_path, start)
+    if start >= config.iterations:
+        if rank == 0:
+            print(f"{out}: already trained ({start} iterations); nothing to do")
+        return {"model": model, "out": out}
     from tqdm import tqdm
 
     bar = tqdm(range(start, config.iterations), initial=start, total=config.iterations, disable=not progress or rank != 0,
@@ -232,6 +236,16 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     if world > 1:
         dist.destroy_process_group()
     return {"model": model, "out": out}
+
+
+LOG_HEADER = "iteration,total,image,iou,laplacian,gradient,seconds\n"
+
+
+def _prepare_log(log_path: Path, start: int) -> None:
+    """A fresh log, or on resume the log cut back to the checkpoint (rows after it are logged again)."""
+    rows = log_path.read_text().splitlines()[1:] if start and log_path.exists() else []
+    kept = [r for r in rows if int(r.split(",")[0]) <= start]
+    log_path.write_text(LOG_HEADER + "".join(r + "\n" for r in kept))
 
 
 def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
