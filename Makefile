@@ -17,8 +17,8 @@ METHODS ?= sg mc sh
 SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
-.PHONY: setup system-libs test bench bench-renderer data $(addprefix data-,$(DATASETS)) \
-        $(addprefix train-,$(DATASETS)) clean help
+# data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
+.PHONY: setup system-libs test bench bench-renderer data clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"

@@ -80,11 +80,13 @@ class Renderer:
     """``Renderer(shading)(meshes, cameras, material, light)`` -> :class:`RenderOutput`.
 
     shading: "mc" | "sg" | "sh" | "sh-sg" or a shader object. Works on whatever device the inputs are on.
+    compile: SG shading through torch.compile (see :class:`~dibrpp.shading.SGShader`).
     """
 
     def __init__(self, shading="sg", spp: int = 64, mis: bool = True, seed: int | None = None,
-                 raster_settings: RasterSettings | None = None):
-        self.shader = make_shader(shading, spp=spp, mis=mis, seed=seed) if isinstance(shading, str) else shading
+                 raster_settings: RasterSettings | None = None, compile: bool = False):
+        self.shader = (make_shader(shading, spp=spp, mis=mis, seed=seed, compile=compile)
+                       if isinstance(shading, str) else shading)
         self.raster_settings = raster_settings or RasterSettings()
 
     def rasterize(self, meshes: Meshes, cameras: Cameras) -> Fragments:

@@ -52,6 +52,7 @@ class TrainConfig:
     checkpoint_every: int = 100
     predict_metallic: bool = False
     threads: int = 0  # torch threads per process (0: torch's default)
+    compile: bool = True  # SG shading through torch.compile (falls back to eager where it cannot)
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "TrainConfig":
@@ -168,8 +169,8 @@ def make_model(config: TrainConfig) -> Encoder:
 
 
 def make_renderer(config: TrainConfig, seed: int) -> Renderer:
-    shading = {"sh-sg": "sh-sg"}.get(config.shading, config.shading)
-    return Renderer(shading, spp=config.spp, seed=seed, raster_settings=RasterSettings(cull_backfaces=True))
+    return Renderer(config.shading, spp=config.spp, seed=seed, raster_settings=RasterSettings(cull_backfaces=True),
+                    compile=config.compile)
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
@@ -308,8 +309,13 @@ def main(argv=None) -> int:
         config = TrainConfig.preset(args.preset, **overrides)
         if config.shading not in ("mc", "sg", "sh", "sh-sg"):
             raise ValueError(f"--shading {config.shading}: choose mc, sg, sh or sh-sg")
-        if not Path(config.dataset, "manifest.json").exists():
+        manifest = Path(config.dataset, "manifest.json")
+        if not manifest.exists():
             raise DataError(f"no dataset at {config.dataset} (manifest.json missing); run `make data` first")
+        if "predict_metallic" not in overrides:
+            # metallic parameter is predicted where the data has metals (the metallic set), else fixed at 0
+            objects = json.loads(manifest.read_text()).get("objects", [])
+            config.predict_metallic = any(o["material"]["metallic"] > 0 for o in objects)
         train(config, resume=args.resume, progress=not args.no_progress)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)
