@@ -18,14 +18,14 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test bench bench-renderer data clean help
+.PHONY: setup system-libs test bench bench-renderer bench-train data clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the test suite (includes Cycles comparisons)"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
-	@echo "make bench-renderer   renderer speed/memory benchmark (prints a table, writes results/bench/)"
+	@echo "make bench            renderer and training-iteration benchmarks (prints tables, writes results/bench/)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -71,7 +71,11 @@ train-%: $(VENV)/.installed
 bench-renderer: $(VENV)/.installed
 	$(PY) -m pipelines.bench_renderer --out results/bench
 
-bench: bench-renderer
+# Time per training iteration and its split (needs the glossy dataset: make data-glossy).
+bench-train: $(VENV)/.installed
+	$(PY) -m pipelines.bench_train --dataset $(DATA)/glossy --out results/bench
+
+bench: bench-renderer bench-train
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

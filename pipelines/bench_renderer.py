@@ -74,29 +74,35 @@ def bench_training(repeats: int) -> list[dict]:
     # the encoder's template (radius 12) seen like the datasets: distance 60, elevation 27, fov 39.6
     sphere = icosphere(3, radius=12.0)
     cams = Cameras.orbit(60.0, 27.0, torch.arange(32.0) * (360 / 32), 39.6, 64)
-    renderer = Renderer("sg", raster_settings=RasterSettings(cull_backfaces=True))
     light = random_sg_light(32, batch=32)
     verts = sphere.verts.expand(32, -1, -1).clone().requires_grad_(True)
     tex = torch.rand(32, 64, 128, 3, requires_grad=True)
     lam = light.sharpness.clone().requires_grad_(True)
     rows = []
 
-    def forward():
-        mat = Material(albedo=tex, roughness=torch.full((32,), 0.3), specular=torch.full((32,), 0.5), wrap_u=True)
-        lt = SGLight(light.axis, lam, light.amplitude)
-        return renderer(sphere.with_verts(verts), cams, mat, lt).image
+    for compile in (False, True):
+        renderer = Renderer("sg", raster_settings=RasterSettings(cull_backfaces=True), compile=compile)
 
-    def fwd():
-        with torch.no_grad():
-            forward()
+        def forward():
+            mat = Material(albedo=tex, roughness=torch.full((32,), 0.3), specular=torch.full((32,), 0.5), wrap_u=True)
+            lt = SGLight(light.axis, lam, light.amplitude)
+            return renderer(sphere.with_verts(verts), cams, mat, lt).image
 
-    def fwd_bwd():
-        forward().sum().backward()
+        def fwd():
+            with torch.no_grad():
+                forward()
 
-    for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
-        t, mem = measure(fn, repeats)
-        rows.append({"case": "training workload: 32 x 64^2, 642 verts, SG K=32", "pass": name, "ms": 1000 * t, "peak_mb": mem})
+        def fwd_bwd():
+            forward().sum().backward()
+
+        for name, fn in (("forward", fwd), ("forward+backward", fwd_bwd)):
+            t, mem = measure(fn, repeats)
+            rows.append({"case": f"training workload: 32 x 64^2, 642 verts, SG K=32{COMPILED[compile]}", "pass": name,
+                         "ms": 1000 * t, "peak_mb": mem})
     return rows
+
+
+COMPILED = {False: " (eager)", True: " (torch.compile)"}
 
 
 def _sphere_gbuffer(res: int):
@@ -111,11 +117,11 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
     n_pix = int(frags.mask.sum())
     rows = []
     env = synthetic_envmap()
-    for kind, values in (("SG", sg_ks), ("MC", mc_ns)):
+    for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC", mc_ns)):
         for v in values:
             rough = torch.tensor([0.3], requires_grad=True)
-            if kind == "SG":
-                shader, base = SGShader(), random_sg_light(v)
+            if kind.startswith("SG"):
+                shader, base = SGShader(compile=kind == "SG-compiled"), random_sg_light(v)
                 make_light = lambda b=base: SGLight(b.axis, b.sharpness, b.amplitude.clone().requires_grad_(True))  # noqa: E731
             else:
                 shader = MCShader(spp=v, mis=True, seed=0)
@@ -129,11 +135,11 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
                         out.sum().backward()
 
             for name, backward in (("forward", False), ("forward+backward", True)):
-                reps = repeats if (kind == "SG" or v <= 64) else 1
+                reps = repeats if (kind != "MC" or v <= 64) else 1
                 t, mem = measure(lambda: run(backward), reps, warmup=0 if reps == 1 else 1)
-                row = {"case": f"{kind} {'K' if kind == 'SG' else 'N'}={v}, {res}^2 sphere ({n_pix} px)", "pass": name,
+                row = {"case": f"{kind} {'N' if kind == 'MC' else 'K'}={v}, {res}^2 sphere ({n_pix} px)", "pass": name,
                        "ms": 1000 * t, "peak_mb": mem}
-                if kind == "SG" and not backward:
+                if kind != "MC" and not backward:
                     row["flop_bound_ms"] = 1000 * SG_FLOP_PER_PIXEL_LOBE * n_pix * v / peak_flops()
                 rows.append(row)
     return rows

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 import time
 from pathlib import Path
@@ -58,6 +59,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", default="data/glossy")
     ap.add_argument("--shading", nargs="+", default=["sg", "mc", "sh"])
     ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=2, help="untimed iterations first (torch.compile compiles here)")
     ap.add_argument("--out", default="results/bench")
     args = ap.parse_args(argv)
     if not Path(args.dataset, "manifest.json").exists():
@@ -65,10 +67,11 @@ def main(argv=None) -> int:
         return 2
     results = []
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of {args.iterations} iterations")
+    resolution = json.loads(Path(args.dataset, "manifest.json").read_text())["config"]["resolution"]
     for shading in args.shading:
-        config = TrainConfig.preset("cpu", dataset=args.dataset, shading=shading)
+        config = TrainConfig.preset("cpu", dataset=args.dataset, shading=shading, image_size=resolution)
         try:
-            r = time_iterations(config, args.iterations)
+            r = time_iterations(config, args.iterations, args.warmup)
         except DataError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -84,7 +87,7 @@ def main(argv=None) -> int:
         w.writerows(results)
     cfg = TrainConfig.preset("cpu")
     lines = [f"Training iteration, CPU default config ({cfg.batch_objects} objects x 2 views, {4 * cfg.batch_objects} "
-             f"renders of {cfg.image_size}x{cfg.image_size}, K={cfg.lobes}, MC spp={cfg.spp}); ms, median of "
+             f"renders of {resolution}x{resolution}, K={cfg.lobes}, MC spp={cfg.spp}); ms, median of "
              f"{args.iterations}", "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join([r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]]) + " |" for r in results]
     (out / "train.md").write_text("\n".join(lines) + "\n")

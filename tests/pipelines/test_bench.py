@@ -1,0 +1,22 @@
+"""Smoke runs of the benchmarks: they run end to end and write their tables (numbers are not asserted)."""
+import csv
+
+from pipelines import bench_renderer, bench_train
+
+
+def test_renderer_benchmark_quick(tmp_path):
+    bench_renderer.main(["--quick", "--out", str(tmp_path)])
+    rows = list(csv.DictReader(open(tmp_path / "renderer.csv")))
+    cases = {r["case"] for r in rows}
+    assert any("torch.compile" in c for c in cases) and any(c.startswith("MC") for c in cases)
+    assert all(float(r["ms"]) > 0 for r in rows)
+    assert (tmp_path / "renderer.md").read_text().count("\n") == len(rows) + 2
+
+
+def test_training_benchmark_splits_an_iteration(tiny_glossy, tmp_path):
+    assert bench_train.main(["--dataset", str(tiny_glossy), "--shading", "sh", "--iterations", "1", "--warmup", "1",
+                             "--out", str(tmp_path)]) == 0
+    row = next(csv.DictReader(open(tmp_path / "train.csv")))
+    parts = sum(float(row[k]) for k in bench_train.PHASES)
+    assert abs(parts - float(row["total"])) < 0.05 * float(row["total"]) + 1
+    assert bench_train.main(["--dataset", str(tmp_path / "missing")]) == 2
