@@ -201,6 +201,12 @@ def test_plan_is_deterministic_and_materials_follow_the_paper():
         assert mat["metallic"] == 0.0 and mat["specular_ior_level"] == 1.0 and 0.0 <= mat["roughness"] <= 0.4
         pool = a["splits"]["envmaps"][o["split"]]
         assert set(o["envmaps"]) <= set(pool)
+    assert a["splits"]["test_objects_see_only_test_envmaps"]
+    # the default size keeps the test split unseen (objects and env maps) with 3 maps per object
+    default = G.plan(G.make_config("glossy"))
+    assert default["splits"]["test_objects_see_only_test_envmaps"]
+    assert all(set(o["envmaps"]) <= set(default["splits"]["envmaps"]["test"])
+               for o in default["objects"] if o["split"] == "test")
     d = G.plan(tiny_config("diffuse", num_objects=10))
     assert all(o["material"]["subsurface_weight"] > 0 for o in d["objects"])
     tones = sorted(o["tone"] for o in d["objects"])
