@@ -1,0 +1,20 @@
+"""Evaluation of a (smoke) trained run on the real tiny dataset's test split."""
+import json
+
+from pipelines import evaluate, train
+
+
+def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
+    runs = tmp_path / "runs"
+    assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--image-size", "32",
+                       "--shading", "sh", "--iterations", "2", "--out", str(runs / "glossy" / "sh-seed0"),
+                       "--no-progress"]) == 0
+    out = tmp_path / "eval"
+    assert evaluate.main(["--runs", str(runs), "--out", str(out)]) == 0
+    r = json.loads((out / "glossy" / "sh-seed0.json").read_text())
+    assert r["shading"] == "sh" and r["iteration"] == 2 and r["test_views"] > 0
+    for k in ("iou", "light", "texture"):
+        assert 0 <= r[k] <= 1, (k, r[k])
+    assert r["image"] > 0 and 0 < r["chamfer"] < 1
+    assert "| glossy | sh |" in (out / "all_runs.md").read_text()
+    assert evaluate.main(["--runs", str(tmp_path / "nothing"), "--out", str(out)]) == 2
