@@ -18,13 +18,14 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test bench bench-renderer bench-train data clean help
+.PHONY: setup system-libs test bench bench-renderer bench-train data eval clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the test suite (includes Cycles comparisons)"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
+	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            renderer and training-iteration benchmarks (prints tables, writes results/bench/)"
 
 setup: system-libs $(VENV)/.installed
@@ -72,6 +73,10 @@ bench-renderer: $(VENV)/.installed
 	$(PY) -m pipelines.bench_renderer --out results/bench
 
 # Time per training iteration and its split (needs the glossy dataset: make data-glossy).
+# Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
+eval: $(VENV)/.installed
+	$(PY) -m pipelines.evaluate --runs $(RUNS) --out results/eval
+
 bench-train: $(VENV)/.installed
 	$(PY) -m pipelines.bench_train --dataset $(DATA)/glossy --out results/bench
 
