@@ -18,13 +18,14 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test bench bench-renderer bench-train data eval clean help
+.PHONY: setup system-libs test bench bench-renderer bench-train data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the test suite (includes Cycles comparisons)"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
+	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            renderer and training-iteration benchmarks (prints tables, writes results/bench/)"
 
@@ -73,6 +74,14 @@ bench-renderer: $(VENV)/.installed
 	$(PY) -m pipelines.bench_renderer --out results/bench
 
 # Time per training iteration and its split (needs the glossy dataset: make data-glossy).
+# Runs for Tables D and E (glossy): DIB-R's diffuse-only shading with SG light, and K = 4, 8, 16 lobes.
+train-ablations: $(VENV)/.installed
+	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sh-sg --seed 0 --out $(RUNS)/glossy/sh-sg-seed0 --resume $(TRAIN_ARGS)
+	@set -e; for k in 4 8 16; do \
+	  $(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --lobes $$k --seed 0 --out $(RUNS)/glossy/sg-k$$k-seed0 --resume $(TRAIN_ARGS); \
+	done
+
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed
 	$(PY) -m pipelines.evaluate --runs $(RUNS) --out results/eval

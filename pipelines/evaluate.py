@@ -6,7 +6,8 @@ Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), p
 view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
 input view, 2D IoU loss, light 1 - NCC (predicted light as a world-frame equirect map vs the GT env
 map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV) and Chamfer distance to the GT mesh.
-Writes ``<dataset>/<run>.json`` per run and a Markdown/CSV table of all runs.
+Writes ``<dataset>/<run>.json`` per run (a checkpoint evaluated before is not evaluated again), a
+Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.tables`).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from dibrpp.io import DataError, atomic_path
 from . import metrics
 from .dataset import MultiViewDataset, collate
 from .losses import to_display
+from .tables import write_tables
 from .train import TrainConfig, make_model, make_renderer
 
 METRICS = ("image", "iou", "light", "texture", "chamfer")
@@ -111,18 +113,27 @@ def main(argv=None) -> int:
     out = Path(args.out)
     results = []
     for run in runs:
-        try:
-            r = evaluate_run(run, eval_spp=args.spp)
-        except DataError as e:
-            print(f"error: {run}: {e}", file=sys.stderr)
-            return 2
-        path = out / r["dataset"] / f"{run.name}.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps(r, indent=1))
+        config = json.loads((run / "config.json").read_text())
+        path = out / Path(config["dataset"]).name / f"{run.name}.json"
+        iteration = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
+        if path.exists() and json.loads(path.read_text())["iteration"] == iteration:
+            r = json.loads(path.read_text())  # this checkpoint was evaluated before
+        else:
+            try:
+                r = evaluate_run(run, eval_spp=args.spp)
+            except DataError as e:
+                print(f"error: {run}: {e}", file=sys.stderr)
+                return 2
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(path) as tmp:
+                tmp.write_text(json.dumps(r, indent=1))
+        if r["iteration"] < r["trained_iterations"]:
+            print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
         print(f"{run}: " + ", ".join(f"{k} {r[k]:.4f}" for k in METRICS))
         results.append(r)
     print(write_table(results, out))
+    print(write_tables(out))
+    print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md")
     return 0
 
 

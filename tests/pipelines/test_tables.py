@@ -1,0 +1,31 @@
+"""Paper-style tables from per-run metric files: paper numbers beside ours, missing runs named, claims judged."""
+import json
+
+from pipelines import tables
+
+
+def write_run(root, dataset, shading, seed, light, lobes=32, image=0.03):
+    d = root / dataset
+    d.mkdir(parents=True, exist_ok=True)
+    r = dict(dataset=dataset, shading=shading, lobes=lobes, seed=seed, iteration=100, trained_iterations=100,
+             image=image, iou=0.05, light=light, texture=0.2, chamfer=0.01)
+    (d / f"{shading}-k{lobes}-seed{seed}.json").write_text(json.dumps(r))
+
+
+def test_tables_judge_claims_and_name_missing_runs(tmp_path):
+    write_run(tmp_path, "glossy", "sg", 0, light=0.20)
+    write_run(tmp_path, "glossy", "mc", 0, light=0.40)  # MC worse than SH here: that claim must fail
+    write_run(tmp_path, "glossy", "sh", 0, light=0.30)
+    write_run(tmp_path, "glossy", "sg", 1, light=0.21, image=0.031)
+    write_run(tmp_path, "glossy", "sg", 2, light=0.22, image=0.032)
+    md = tables.write_tables(tmp_path)
+    assert "DIB-R++ SG predicts light better than SH on glossy surfaces: holds" in md
+    assert "DIB-R++ MC predicts light better than SH on glossy surfaces: does NOT hold" in md
+    assert "on metallic surfaces: cannot be tested yet" in md
+    assert "missing: make train-metallic" in md and "missing: make train-ablations" in md
+    # Table F: our mean of the three seeds beside the paper's
+    rows = list(open(tmp_path / "tableF.csv"))
+    mean = [r for r in rows if r.startswith("mean")][0].split(",")
+    assert abs(float(mean[1]) - 0.031) < 1e-9 and float(mean[5]) == 0.025
+    assert "seeds have little effect (largest relative std. dev." in md
+    assert (tmp_path / "tables.tex").read_text().count(r"\begin{tabular}") == 5
