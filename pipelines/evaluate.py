@@ -6,7 +6,8 @@ Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), p
 view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
 input view, 2D IoU loss, light 1 - NCC (predicted light as a world-frame equirect map vs the GT env
 map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV) and Chamfer distance to the GT mesh.
-Writes ``<dataset>/<run>.json`` per run (a checkpoint evaluated before is not evaluated again), a
+Writes ``<dataset>/<run>.json`` and a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and
+light, ours vs GT) per run (a checkpoint evaluated before is not evaluated again), a
 Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.tables`).
 """
 from __future__ import annotations
@@ -48,6 +49,8 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     config.spp = eval_spp
     renderer = make_renderer(config, seed=0)
     sums = dict.fromkeys(METRICS, 0.0)
+    shown = set(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS))[:FIGURE_ROWS])  # different samples
+    figure_rows = []
     n = 0
     for start in range(0, len(ds), batch):
         items = [ds[i] for i in range(start, min(start + batch, len(ds)))]
@@ -66,6 +69,11 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
         sums["light"] += metrics.ncc_loss(pred_env, env).sum().item()
         albedo = renderer.render_albedo(pred.meshes(), cams, pred.material()).rgb
         sums["texture"] += metrics.ncc_loss(albedo, b["albedo"][:, 0]).sum().item()
+        for k in range(len(items)):
+            if start + k in shown:
+                figure_rows.append([to_display(rgba[k, ..., :3]) * rgba[k, ..., 3:], to_display(out.rgb[k]),
+                                    to_display(albedo[k]), to_display(b["albedo"][k, 0]),
+                                    _tonemap(pred_env[k]), _tonemap(env[k])])
         verts = pred.meshes().verts
         for k, obj in enumerate(b["object"].tolist()):
             gt = ds.mesh(obj)
@@ -75,7 +83,40 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     result = {k: v / n for k, v in sums.items()}
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=n)
-    return result
+    return result, figure_rows
+
+
+FIGURE_ROWS = 4
+FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)")
+
+
+def _tonemap(env: torch.Tensor) -> torch.Tensor:
+    """An HDR map scaled to its own mean (NCC ignores scale), sRGB-encoded, clipped."""
+    return to_display(0.4 * env / env.mean().clamp_min(1e-8)).clamp(0, 1)
+
+
+def write_figure(rows: list, path: Path, title: str) -> None:
+    """Qualitative results like the paper's Fig. O-Q: one test view per row."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(rows), len(FIGURE_COLUMNS), figsize=(2.2 * len(FIGURE_COLUMNS) + 1.2, 1.9 * len(rows)),
+                             gridspec_kw=dict(width_ratios=[1, 1, 1, 1, 2, 2]), squeeze=False)
+    for i, row in enumerate(rows):
+        for j, img in enumerate(row):
+            ax = axes[i, j]
+            ax.imshow(img.clamp(0, 1).numpy())
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(FIGURE_COLUMNS[j], fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
 
 
 def find_runs(root: Path) -> list[Path]:
@@ -120,11 +161,13 @@ def main(argv=None) -> int:
             r = json.loads(path.read_text())  # this checkpoint was evaluated before
         else:
             try:
-                r = evaluate_run(run, eval_spp=args.spp)
+                r, figure_rows = evaluate_run(run, eval_spp=args.spp)
             except DataError as e:
                 print(f"error: {run}: {e}", file=sys.stderr)
                 return 2
             path.parent.mkdir(parents=True, exist_ok=True)
+            write_figure(figure_rows, path.with_suffix(".png"),
+                         f"{r['dataset']} / {run.name}: test views (unseen objects and env maps)")
             with atomic_path(path) as tmp:
                 tmp.write_text(json.dumps(r, indent=1))
         if r["iteration"] < r["trained_iterations"]:

@@ -17,4 +17,5 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
         assert 0 <= r[k] <= 1, (k, r[k])
     assert r["image"] > 0 and 0 < r["chamfer"] < 1
     assert "| glossy | sh |" in (out / "all_runs.md").read_text()
+    assert (out / "glossy" / "sh-seed0.png").stat().st_size > 1000 and (out / "tables.md").exists()
     assert evaluate.main(["--runs", str(tmp_path / "nothing"), "--out", str(out)]) == 2
