@@ -223,18 +223,8 @@ def task_envmap(out: str, cfg: Config, i: int, kind: str) -> dict:
     return dict(kind="envmap", index=i, skipped=False, seconds=time.perf_counter() - t0)
 
 
-def _write_obj(path: Path, verts, faces, uvs, face_uvs, mtl_name: str) -> None:
-    lines = [f"mtllib {mtl_name}", "usemtl albedo"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in verts]
-    lines += [f"vt {u:.6f} {v:.6f}" for u, v in uvs]
-    f1, t1 = faces + 1, face_uvs + 1
-    lines += [f"f {a}/{d} {b}/{e} {c}/{f}" for (a, b, c), (d, e, f) in zip(f1, t1)]
-    with atomic_path(path) as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-
-
 def task_object(out: str, cfg: Config, i: int, info: dict) -> dict:
-    from dibrpp.io import write_png
+    from dibrpp.io import write_png, write_textured_obj
 
     from . import shapes, textures
 
@@ -252,9 +242,7 @@ def task_object(out: str, cfg: Config, i: int, info: dict) -> dict:
         with open(tmp, "wb") as fh:
             np.savez(fh, verts=obj["verts"].astype(np.float32), faces=obj["faces"], uvs=uvs, face_uvs=face_uvs)
     write_png(d / "texture.png", tex, srgb=False)  # values are sRGB already
-    with atomic_path(d / "mesh.mtl") as tmp:
-        tmp.write_text("newmtl albedo\nKd 1 1 1\nmap_Kd texture.png\n")
-    _write_obj(d / "mesh.obj", obj["verts"], obj["faces"], uvs, face_uvs, "mesh.mtl")
+    write_textured_obj(d / "mesh.obj", obj["verts"], obj["faces"], uvs, face_uvs, "texture.png")
     meta = dict(index=i, kind=cfg.shape_kind, split=info["split"], material=info["material"], envmaps=info["envmaps"],
                 shape_params=obj["shape"].params, paint=style, normalisation=obj["normalisation"],
                 num_verts=len(obj["verts"]), num_faces=len(obj["faces"]), texture_size=cfg.texture_size,

@@ -206,3 +206,20 @@ def save_mesh(path, verts, faces, uvs=None, texture_png: str | None = None) -> N
         mesh.visual = trimesh.visual.TextureVisuals(uv=uv, image=image)
     with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=Path(path).suffix.lstrip(".").lower())
+
+
+def write_textured_obj(path, verts, faces, uvs, face_uvs, texture_file: str = "texture.png") -> None:
+    """OBJ with per-corner UVs (``f v/vt``) plus an MTL of the same stem whose map_Kd is ``texture_file``
+    (relative to the OBJ; the caller writes the image). Opens textured in Blender and MeshLab."""
+    path = Path(path)
+    arrays = [t.detach().cpu().numpy() if isinstance(t, torch.Tensor) else np.asarray(t) for t in (verts, faces, uvs, face_uvs)]
+    verts, faces, uvs, face_uvs = arrays
+    mtl = path.with_suffix(".mtl")
+    with atomic_path(mtl) as tmp:
+        tmp.write_text(f"newmtl albedo\nKd 1 1 1\nmap_Kd {texture_file}\n")
+    lines = [f"mtllib {mtl.name}", "usemtl albedo"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in verts]
+    lines += [f"vt {u:.6f} {v:.6f}" for u, v in uvs]
+    lines += [f"f {a}/{d} {b}/{e} {c}/{f}" for (a, b, c), (d, e, f) in zip(faces + 1, face_uvs + 1)]
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
