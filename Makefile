@@ -6,6 +6,8 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 # Shared libraries the bpy wheel loads (Debian/Ubuntu package names).
 BPY_SYSTEM_LIBS := libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libxext6 libsm6 libice6 libgl1
+# Headless browser that the test suite opens the HTML evaluation report in.
+SYSTEM_PKGS := $(BPY_SYSTEM_LIBS) chromium
 PYTEST_ARGS ?=
 
 DATASETS := metallic glossy diffuse
@@ -32,10 +34,10 @@ help:
 setup: system-libs $(VENV)/.installed
 
 system-libs:
-	@missing=""; for p in $(BPY_SYSTEM_LIBS); do \
+	@missing=""; for p in $(SYSTEM_PKGS); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
-	  echo "installing system libraries for bpy:$$missing"; \
+	  echo "installing system packages (bpy's libraries, chromium):$$missing"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] && echo "" || echo sudo ); \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
 	fi

@@ -25,6 +25,7 @@ from dibrpp.io import DataError, atomic_path
 from . import metrics
 from .dataset import MultiViewDataset, collate
 from .losses import to_display
+from .report import write_report
 from .tables import write_tables
 from .train import TrainConfig, make_model, make_renderer
 
@@ -176,7 +177,8 @@ def main(argv=None) -> int:
         results.append(r)
     print(write_table(results, out))
     print(write_tables(out))
-    print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md")
+    report = write_report(out)
+    print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
     return 0
 
 
