@@ -6,8 +6,9 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 # Shared libraries the bpy wheel loads (Debian/Ubuntu package names).
 BPY_SYSTEM_LIBS := libx11-6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libxext6 libsm6 libice6 libgl1
-# Headless browser that the test suite opens the HTML evaluation report in.
-SYSTEM_PKGS := $(BPY_SYSTEM_LIBS) chromium
+# Headless browser that the test suite opens the HTML evaluation report in; LLVM 19 for Mitsuba's LLVM
+# backend (Table B; Dr.Jit aborts with LLVM 15 and 16).
+SYSTEM_PKGS := $(BPY_SYSTEM_LIBS) chromium libllvm19
 PYTEST_ARGS ?=
 
 DATASETS := metallic glossy diffuse
@@ -20,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test bench bench-renderer bench-train data eval train-ablations clean help
+.PHONY: setup system-libs test bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
@@ -29,7 +30,8 @@ help:
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
-	@echo "make bench            renderer and training-iteration benchmarks (prints tables, writes results/bench/)"
+	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
+	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -37,7 +39,7 @@ system-libs:
 	@missing=""; for p in $(SYSTEM_PKGS); do \
 	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
-	  echo "installing system packages (bpy's libraries, chromium):$$missing"; \
+	  echo "installing system packages (bpy's libraries, chromium, LLVM 19):$$missing"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] && echo "" || echo sudo ); \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
 	fi
@@ -48,7 +50,7 @@ $(VENV)/.installed: pyproject.toml
 	$(PIP) install -q --upgrade pip
 	# torch first and pinned: pip takes the local CPU wheel instead of a multi-GB CUDA build.
 	$(PIP) install -q "torch==2.13.0"
-	$(PIP) install -q -e ".[blender,dev]"
+	$(PIP) install -q -e ".[blender,dev,bench]"
 	$(PY) -c "import torch, bpy, OpenEXR, trimesh, xatlas, skimage; print('torch', torch.__version__, '| bpy', bpy.app.version_string)"
 	touch $@
 
@@ -75,7 +77,6 @@ train-%: $(VENV)/.installed
 bench-renderer: $(VENV)/.installed
 	$(PY) -m pipelines.bench_renderer --out results/bench
 
-# Time per training iteration and its split (needs the glossy dataset: make data-glossy).
 # Runs for Tables D and E (glossy): DIB-R's diffuse-only shading with SG light, and K = 4, 8, 16 lobes.
 train-ablations: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
@@ -88,10 +89,19 @@ train-ablations: $(VENV)/.installed
 eval: $(VENV)/.installed
 	$(PY) -m pipelines.evaluate --runs $(RUNS) --out results/eval
 
+# Time per training iteration and its split (needs the glossy dataset: make data-glossy).
 bench-train: $(VENV)/.installed
 	$(PY) -m pipelines.bench_train --dataset $(DATA)/glossy --out results/bench
 
-bench: bench-renderer bench-train
+# Table B: the same env-map optimisation in dibrpp and Mitsuba 3, wall time and peak memory.
+bench-mitsuba: $(VENV)/.installed
+	$(PY) -m pipelines.bench_mitsuba --out results/bench
+
+bench: bench-renderer bench-mitsuba bench-train
+
+# Figures A-E of the supplementary material (Sec. B, C) on this machine.
+studies: $(VENV)/.installed
+	$(PY) -m pipelines.studies --out results/studies
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

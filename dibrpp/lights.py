@@ -429,11 +429,16 @@ def _initial_axes(dirs: torch.Tensor, target: torch.Tensor, num_lobes: int, shar
     b = target.shape[0]
     n_spread = num_lobes // 2
     luma = target.new_tensor(LUMINANCE_WEIGHTS)
+    # Once nothing positive is left (a broad lobe on a sun over-subtracts the whole map), the pick would
+    # repeat, and identical lobes get identical gradients and never separate: take spread axes instead.
+    fallback = _fibonacci_sphere(num_lobes - n_spread, _random_rotation(seed + 1)).to(target)
     residual, axes = target, []
-    for _ in range(num_lobes - n_spread):
-        pick = (residual @ luma).argmax(-1)  # (B,)
-        axis = dirs[pick].unsqueeze(1)  # (B, 1, 3)
-        amp = residual.gather(1, pick.view(b, 1, 1).expand(b, 1, 3)).clamp_min(0)
+    for i in range(num_lobes - n_spread):
+        score = residual @ luma
+        pick = score.argmax(-1)  # (B,)
+        exhausted = (score.gather(1, pick.view(b, 1)) <= 0).view(b, 1, 1)
+        axis = torch.where(exhausted, fallback[i].view(1, 1, 3), dirs[pick].unsqueeze(1))  # (B, 1, 3)
+        amp = residual.gather(1, pick.view(b, 1, 1).expand(b, 1, 3)).clamp_min(0) * ~exhausted
         residual = residual - amp * sg_lobe_values(dirs, axis.unsqueeze(1), sharpness)
         axes.append(axis)
     spread = _fibonacci_sphere(n_spread, _random_rotation(seed)).to(target).expand(b, n_spread, 3)
