@@ -53,6 +53,14 @@ class Cameras:
     def to(self, device) -> "Cameras":
         return Cameras(self.world_to_camera.to(device), self.fov.to(device), self.resolution)
 
+    def orbited(self, delta_azimuth_deg: float) -> "Cameras":
+        """The same cameras moved ``delta_azimuth_deg`` further along their orbit about world +Z (novel views)."""
+        a = math.radians(delta_azimuth_deg)
+        c, s = math.cos(a), math.sin(a)
+        # a camera at azimuth az + delta sees point p as the camera at az sees p rotated by -delta
+        rz_inverse = self.world_to_camera.new_tensor([[c, s, 0, 0], [-s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+        return Cameras(self.world_to_camera @ rz_inverse, self.fov, self.resolution)
+
     @property
     def device(self):
         return self.world_to_camera.device

@@ -6,8 +6,9 @@ Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), p
 view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
 input view, 2D IoU loss, light 1 - NCC (predicted light as a world-frame equirect map vs the GT env
 map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV) and Chamfer distance to the GT mesh.
-Writes ``<dataset>/<run>.json`` and a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and
-light, ours vs GT) per run (a checkpoint evaluated before is not evaluated again), a
+Writes ``<dataset>/<run>.json``, a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and
+light ours vs GT, novel views) and ``<dataset>/<run>_failures.png`` (the worst test view by each metric)
+per run (a checkpoint evaluated before is not evaluated again), a
 Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.tables`).
 """
 from __future__ import annotations
@@ -42,53 +43,68 @@ def load_run(run: Path):
     return config, model, state["iteration"]
 
 
+FIGURE_ROWS = 4
+NOVEL_AZIMUTHS = (90.0, 180.0)  # novel views: the input camera moved this far along its orbit
+FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)",
+                  *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
+METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC", "texture": "tex 1-NCC",
+                "chamfer": "Chamfer"}
+
+
 @torch.no_grad()
-def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64) -> dict:
-    """Mean metrics over all test views of the run's dataset (or ``dataset``)."""
+def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) -> tuple[dict, list]:
+    """Per-view metrics (name -> (B,) tensor) of a batch of test views and, with ``figure``, one figure
+    row per view (input, re-rendering, albedo and light ours vs GT, novel views with the light fixed in the world)."""
+    b = collate(items)
+    rgba = b["image"][:, 0]
+    cams = b["cameras"]
+    inp = torch.cat([to_display(rgba[..., :3]), rgba[..., 3:]], -1)
+    pred = model(inp.permute(0, 3, 1, 2))
+    light = pred.light().in_frame(cams.world_to_camera[:, :3, :3])
+    out = renderer(pred.meshes(), cams, pred.material(), light)
+    gt_mask, env = rgba[..., 3], b["envmap"]
+    pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
+    albedo = renderer.render_albedo(pred.meshes(), cams, pred.material()).rgb
+    verts = pred.meshes().verts
+    gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
+    chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
+                                        samples=4000) for k, gt in enumerate(gt_meshes)]
+    per_view = {"image": metrics.image_l1(to_display(out.rgb), to_display(rgba[..., :3]), gt_mask),
+                "iou": metrics.iou_loss(out.alpha, gt_mask),
+                "light": metrics.ncc_loss(pred_env, env),
+                "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
+                "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
+    rows = []
+    if figure:
+        novel = [to_display(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
+        rows = [[to_display(rgba[k, ..., :3]) * rgba[k, ..., 3:], to_display(out.rgb[k]), to_display(albedo[k]),
+                 to_display(b["albedo"][k, 0]), _tonemap(pred_env[k]), _tonemap(env[k]), *(v[k] for v in novel)]
+                for k in range(len(items))]
+    return per_view, rows
+
+
+def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64) -> tuple[dict, dict]:
+    """Mean metrics over all test views of the run's dataset (or ``dataset``), and figure rows:
+    {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
     config, model, iteration = load_run(run)
     ds = MultiViewDataset(dataset or config.dataset, split="test", views_per_item=1)
     config.spp = eval_spp
     renderer = make_renderer(config, seed=0)
-    sums = dict.fromkeys(METRICS, 0.0)
-    shown = set(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS))[:FIGURE_ROWS])  # different samples
-    figure_rows = []
-    n = 0
+    per_view = {k: [] for k in METRICS}
     for start in range(0, len(ds), batch):
-        items = [ds[i] for i in range(start, min(start + batch, len(ds)))]
-        b = collate(items)
-        rgba = b["image"][:, 0]
-        cams = b["cameras"]
-        inp = torch.cat([to_display(rgba[..., :3]), rgba[..., 3:]], -1)
-        pred = model(inp.permute(0, 3, 1, 2))
-        light = pred.light().in_frame(cams.world_to_camera[:, :3, :3])
-        out = renderer(pred.meshes(), cams, pred.material(), light)
-        gt_mask = rgba[..., 3]
-        sums["image"] += metrics.image_l1(to_display(out.rgb), to_display(rgba[..., :3]), gt_mask).sum().item()
-        sums["iou"] += metrics.iou_loss(out.alpha, gt_mask).sum().item()
-        env = b["envmap"]
-        pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
-        sums["light"] += metrics.ncc_loss(pred_env, env).sum().item()
-        albedo = renderer.render_albedo(pred.meshes(), cams, pred.material()).rgb
-        sums["texture"] += metrics.ncc_loss(albedo, b["albedo"][:, 0]).sum().item()
-        for k in range(len(items)):
-            if start + k in shown:
-                figure_rows.append([to_display(rgba[k, ..., :3]) * rgba[k, ..., 3:], to_display(out.rgb[k]),
-                                    to_display(albedo[k]), to_display(b["albedo"][k, 0]),
-                                    _tonemap(pred_env[k]), _tonemap(env[k])])
-        verts = pred.meshes().verts
-        for k, obj in enumerate(b["object"].tolist()):
-            gt = ds.mesh(obj)
-            sums["chamfer"] += metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(),
-                                                        gt.verts[0].numpy(), gt.faces.numpy(), samples=4000)
-        n += len(items)
-    result = {k: v / n for k, v in sums.items()}
+        values, _ = predict_views(model, renderer, ds, [ds[i] for i in range(start, min(start + batch, len(ds)))])
+        for k in METRICS:
+            per_view[k].append(values[k])
+    per_view = {k: torch.cat(v) for k, v in per_view.items()}
+    result = {k: float(v.mean()) for k, v in per_view.items()}
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
-                  seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=n)
-    return result, figure_rows
-
-
-FIGURE_ROWS = 4
-FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)")
+                  seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(ds))
+    shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
+    worst = {k: int(v.argmax()) for k, v in per_view.items()}
+    _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
+    _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True)
+    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k][i]):.3f})" for k, i in worst.items()]
+    return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
 
 
 def _tonemap(env: torch.Tensor) -> torch.Tensor:
@@ -96,15 +112,16 @@ def _tonemap(env: torch.Tensor) -> torch.Tensor:
     return to_display(0.4 * env / env.mean().clamp_min(1e-8)).clamp(0, 1)
 
 
-def write_figure(rows: list, path: Path, title: str) -> None:
+def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | None = None) -> None:
     """Qualitative results like the paper's Fig. O-Q: one test view per row."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    ratios = [2 if c.startswith("light") else 1 for c in FIGURE_COLUMNS]
     fig, axes = plt.subplots(len(rows), len(FIGURE_COLUMNS), figsize=(2.2 * len(FIGURE_COLUMNS) + 1.2, 1.9 * len(rows)),
-                             gridspec_kw=dict(width_ratios=[1, 1, 1, 1, 2, 2]), squeeze=False)
+                             gridspec_kw=dict(width_ratios=ratios), squeeze=False)
     for i, row in enumerate(rows):
         for j, img in enumerate(row):
             ax = axes[i, j]
@@ -113,6 +130,8 @@ def write_figure(rows: list, path: Path, title: str) -> None:
             ax.set_yticks([])
             if i == 0:
                 ax.set_title(FIGURE_COLUMNS[j], fontsize=9)
+            if j == 0 and row_labels:
+                ax.set_ylabel(row_labels[i], fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
@@ -162,13 +181,16 @@ def main(argv=None) -> int:
             r = json.loads(path.read_text())  # this checkpoint was evaluated before
         else:
             try:
-                r, figure_rows = evaluate_run(run, eval_spp=args.spp)
+                r, figures = evaluate_run(run, eval_spp=args.spp)
             except DataError as e:
                 print(f"error: {run}: {e}", file=sys.stderr)
                 return 2
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_figure(figure_rows, path.with_suffix(".png"),
-                         f"{r['dataset']} / {run.name}: test views (unseen objects and env maps)")
+            rows, _ = figures["examples"]
+            write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: test views (unseen objects and env maps)")
+            rows, labels = figures["failures"]
+            write_figure(rows, path.with_name(f"{run.name}_failures.png"),
+                         f"{r['dataset']} / {run.name}: failure cases, the worst test view by each metric", labels)
             with atomic_path(path) as tmp:
                 tmp.write_text(json.dumps(r, indent=1))
         if r["iteration"] < r["trained_iterations"]:

@@ -48,12 +48,14 @@ def write_report(eval_dir: Path) -> Path:
     for key in sorted(results):
         r = results[key]
         figure = eval_dir / r["dataset"] / f"{Path(r['run']).name}.png"
+        failures = figure.with_name(f"{Path(r['run']).name}_failures.png")
         curve = Path(r["run"]) / "loss.png"
         metrics = ", ".join(f"{c} {r[c]:.4f}" for c in (*COLUMNS, "chamfer"))
         parts.append(f"<h3>{html.escape(r['dataset'])} / {html.escape(Path(r['run']).name)}</h3>"
                      f"<p>{html.escape(metrics)} (iteration {r['iteration']}, {r['test_views']} test views)</p>"
                      "<div class='run'>" + (_img(figure) if figure.exists() else "")
-                     + (f"<div class='curve'>{_img(curve)}</div>" if curve.exists() else "") + "</div>")
+                     + (f"<div class='curve'>{_img(curve)}</div>" if curve.exists() else "") + "</div>"
+                     + (f"<div class='run'>{_img(failures)}</div>" if failures.exists() else ""))
     parts.append("</body></html>")
     path = eval_dir / "report.html"
     with atomic_path(path) as tmp:

@@ -40,6 +40,14 @@ def test_field_of_view_is_the_full_angle():
     assert torch.allclose(ndc[0, 0], torch.tensor([1.0, 0.0]), atol=1e-5)
 
 
+def test_orbited_cameras_are_orbit_cameras_further_round():
+    cams = Cameras.orbit(60.0, 27.0, torch.tensor([10.0, 200.0]), 40.0, 16)
+    moved = cams.orbited(90.0)
+    expected = Cameras.orbit(60.0, 27.0, torch.tensor([100.0, 290.0]), 40.0, 16)
+    torch.testing.assert_close(moved.world_to_camera, expected.world_to_camera, atol=1e-4, rtol=0)
+    torch.testing.assert_close(moved.fov, cams.fov)
+
+
 def test_view_directions_point_back_to_the_camera():
     cams = Cameras.orbit(7.0, 20.0, 40.0, 50.0, 9)
     v = cams.view_directions_world()

@@ -18,4 +18,6 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
     assert r["image"] > 0 and 0 < r["chamfer"] < 1
     assert "| glossy | sh |" in (out / "all_runs.md").read_text()
     assert (out / "glossy" / "sh-seed0.png").stat().st_size > 1000 and (out / "tables.md").exists()
+    assert (out / "glossy" / "sh-seed0_failures.png").stat().st_size > 1000
+    assert "sh-seed0_failures.png" in (out / "report.html").read_text()
     assert evaluate.main(["--runs", str(tmp_path / "nothing"), "--out", str(out)]) == 2
