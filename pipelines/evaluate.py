@@ -73,7 +73,9 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
                 "iou": metrics.iou_loss(out.alpha, gt_mask),
                 "light": metrics.ncc_loss(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
-                "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
+                "chamfer": torch.tensor(chamfer, dtype=torch.float64),
+                # reference: what the light metric gives a constant env map (no prediction at all)
+                "light_constant": metrics.ncc_loss(torch.ones_like(env), env)}
     rows = []
     if figure:
         novel = [to_display(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
@@ -90,20 +92,20 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     ds = MultiViewDataset(dataset or config.dataset, split="test", views_per_item=1)
     config.spp = eval_spp
     renderer = make_renderer(config, seed=0)
-    per_view = {k: [] for k in METRICS}
+    per_view = {}
     for start in range(0, len(ds), batch):
         values, _ = predict_views(model, renderer, ds, [ds[i] for i in range(start, min(start + batch, len(ds)))])
-        for k in METRICS:
-            per_view[k].append(values[k])
+        for k, v in values.items():
+            per_view.setdefault(k, []).append(v)
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
     result = {k: float(v.mean()) for k, v in per_view.items()}
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(ds))
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
-    worst = {k: int(v.argmax()) for k, v in per_view.items()}
+    worst = {k: int(per_view[k].argmax()) for k in METRICS}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
     _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True)
-    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k][i]):.3f})" for k, i in worst.items()]
+    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k][i]):.3g})" for k, i in worst.items()]
     return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
 
 

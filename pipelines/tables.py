@@ -56,6 +56,15 @@ def _row(label: str, key: tuple, results: dict, missing_hint: str) -> dict:
                 note="" if r else f"missing: {missing_hint}", iterations=None if r is None else r["iteration"])
 
 
+def _constant_light_row(ds: str, results: dict) -> list[dict]:
+    """Reference row: the light metric of a constant env map on the dataset's test views (from any run)."""
+    v = next((r["light_constant"] for r in results.values() if r["dataset"] == ds and "light_constant" in r), None)
+    if v is None:
+        return []
+    return [dict(label=f"{ds} / constant light (reference)", ours=(None, None, v, None), paper=None,
+                 note="Light of a constant env map", iterations=None)]
+
+
 def build_tables(results: dict) -> dict[str, dict]:
     """{table id: {title, rows, claims}} for every table, whether or not its runs exist."""
     t = {}
@@ -63,9 +72,11 @@ def build_tables(results: dict) -> dict[str, dict]:
     for ds in ("metallic", "glossy"):
         for m in ("mc", "sg", "sh"):
             rows.append(_row(f"{ds} / {METHOD_NAMES[m]}", (ds, m, 32, 0), results, f"make train-{ds}"))
+        rows += _constant_light_row(ds, results)
     t["table1"] = dict(title="Table 1: metallic and glossy surfaces (test split; lower is better)", rows=rows)
     t["tableC"] = dict(title="Table C: diffuse surfaces", rows=[
-        _row(METHOD_NAMES[m], ("diffuse", m, 32, 0), results, "make train-diffuse") for m in ("mc", "sg", "sh")])
+        _row(METHOD_NAMES[m], ("diffuse", m, 32, 0), results, "make train-diffuse") for m in ("mc", "sg", "sh")]
+        + _constant_light_row("diffuse", results))
     t["tableD"] = dict(title="Table D: shading methods on glossy surfaces", rows=[
         _row(METHOD_NAMES[m], ("glossy", m, 32, 0), results, hint) for m, hint in
         (("sg", "make train-glossy"), ("sh-sg", "make train-ablations"), ("sh", "make train-glossy"))])
@@ -110,6 +121,14 @@ def _claims(t: dict, results: dict) -> None:
             v = metric((ds, m, 32, 0), "light")
             claim("table1", f"{METHOD_NAMES[m]} predicts light better than SH on {ds} surfaces",
                   None if v is None or sh is None else v < sh)
+    for ds, table in (("metallic", "table1"), ("glossy", "table1"), ("diffuse", "tableC")):
+        runs = [r for r in results.values() if r["dataset"] == ds and "light_constant" in r and r["seed"] == 0
+                and r["shading"] in ("mc", "sg", "sh") and run_key(r)[2] == 32]
+        if runs:
+            best = min(runs, key=lambda r: r["light"])
+            claim(table, f"on {ds} surfaces the best predicted light ({METHOD_NAMES[best['shading']]}, "
+                  f"{best['light']:.3f}) beats a constant env map ({best['light_constant']:.3f})",
+                  best["light"] < best["light_constant"])
     d = [metric(("diffuse", m, 32, 0), "light") for m in ("mc", "sg", "sh")]
     claim("tableC", "on diffuse surfaces SH has the best light score", None if None in d else d[2] <= min(d[:2]))
     sg, shsg, sh = (metric(("glossy", m, 32, 0), "light") for m in ("sg", "sh-sg", "sh"))

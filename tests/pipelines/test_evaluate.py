@@ -13,7 +13,7 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
     assert evaluate.main(["--runs", str(runs), "--out", str(out)]) == 0
     r = json.loads((out / "glossy" / "sh-seed0.json").read_text())
     assert r["shading"] == "sh" and r["iteration"] == 2 and r["test_views"] > 0
-    for k in ("iou", "light", "texture"):
+    for k in ("iou", "light", "texture", "light_constant"):
         assert 0 <= r[k] <= 1, (k, r[k])
     assert r["image"] > 0 and 0 < r["chamfer"] < 1
     assert "| glossy | sh |" in (out / "all_runs.md").read_text()
