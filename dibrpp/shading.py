@@ -10,6 +10,8 @@
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -48,51 +50,173 @@ class MCShader:
     """Monte-Carlo shading with ``spp`` samples per pixel.
 
     mis: half the samples from the BRDF, half from the env map, balance heuristic. seed: fixed
-    random numbers for reproducible renders and tests (None: torch's global generator).
+    random numbers for reproducible renders and tests (None: torch's global generator of the device).
+
+    replay (default True): memory independent of ``spp``. When gradients are needed, the estimate is a
+    custom autograd function (:class:`_MCReplay`) that runs the sample chunks without building a graph
+    and remembers only the random generator's state at the start of each chunk; its backward redraws
+    exactly the same uniforms chunk by chunk (path replay, as Mitsuba 3's prb integrator), recomputes
+    each chunk's contribution with autograd on and back-propagates ``grad_output`` through it at once.
+    Values and samples are those of ``replay=False`` (the plain autograd path, which keeps every
+    sample's intermediates until backward), and gradients agree to float rounding. No double backward.
+    max_batch_samples: pixel x sample pairs drawn per chunk (this sets which uniform goes to which
+    sample, so it is part of the estimator's definition for a seed). replay_batch_samples: pixel x
+    sample pairs per recomputation in backward (only memory and speed depend on it).
     """
 
-    def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21):
+    def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21,
+                 replay: bool = True, replay_batch_samples: int = 1 << 18):
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
         self.spp, self.mis, self.seed = int(spp), bool(mis), seed
         self.max_batch_samples = max_batch_samples
-
-    def _uniforms(self, shape, device, gen):
-        return torch.rand(shape, device=device, generator=gen)
+        self.replay, self.replay_batch_samples = bool(replay), int(replay_batch_samples)
 
     def __call__(self, g: GBuffer, light) -> torch.Tensor:
+        plan = _MCPlan(self, g, light)
+        inputs = plan.inputs()
+        if (self.replay and plan.replayable and torch.is_grad_enabled()
+                and any(isinstance(t, torch.Tensor) and t.requires_grad for t in inputs)):
+            return _MCReplay.apply(plan, *inputs)
+        return plan.estimate(inputs)
+
+
+def _default_generator(device: torch.device) -> torch.Generator | None:
+    """The generator ``torch.rand(..., generator=None)`` draws from on ``device`` (None if unknown)."""
+    if device.type == "cpu":
+        return torch.default_generator
+    if device.type == "cuda":
+        return torch.cuda.default_generators[device.index if device.index is not None else torch.cuda.current_device()]
+    return None
+
+
+_POINT_FIELDS = ("normal", "view", "albedo", "alpha", "metallic", "specular")
+
+
+class _MCPlan:
+    """One MC estimate: the sample chunks, their random numbers, and the contribution of a chunk as a
+    function of the differentiable inputs (G-buffer tensors, then the light's tensors)."""
+
+    def __init__(self, shader: MCShader, g: GBuffer, light):
         p = g.point
-        n_pix = p.normal.shape[0]
-        device = p.normal.device
-        gen = None
-        if self.seed is not None:
-            gen = torch.Generator(device=device)
-            gen.manual_seed(self.seed)
-        n_light = self.spp // 2 if self.mis else 0
-        n_brdf = self.spp - n_light
-        chunk = max(1, self.max_batch_samples // max(n_pix, 1))
-        total = p.normal.new_zeros(n_pix, 3)
+        self.g, self.point, self.light = g, p, light
+        self.n_pix = p.normal.shape[0]
+        self.device = p.normal.device
+        self.mis = shader.mis
+        self.n_light = shader.spp // 2 if shader.mis else 0
+        self.n_brdf = shader.spp - self.n_light
+        self.chunk = max(1, shader.max_batch_samples // max(self.n_pix, 1))
+        self.sub = max(1, shader.replay_batch_samples // max(self.n_pix, 1))
+        self.chunks = ([("brdf", min(self.chunk, self.n_brdf - s0)) for s0 in range(0, self.n_brdf, self.chunk)]
+                       + [("light", min(self.chunk, self.n_light - s0)) for s0 in range(0, self.n_light, self.chunk)])
+        if shader.seed is not None:
+            self.gen = torch.Generator(device=self.device)
+            self.gen.manual_seed(shader.seed)
+        else:
+            self.gen = _default_generator(self.device)
+            if self.gen is None:  # a device whose global generator we cannot snapshot: a private one, seeded from it
+                self.gen = torch.Generator(device=self.device)
+                self.gen.manual_seed(int(torch.randint(0, 2 ** 62, (1,), device=self.device)))
+        self.states: list[torch.Tensor] = []  # generator state at the start of each chunk (filled by estimate)
+        # lights are rebuilt around the function's inputs: a shallow copy with its tensors replaced. The env-map
+        # sampling tables (from the detached image) are built once here and shared by every copy.
+        self.light_fields: tuple[str, ...] = ()
+        from .lights import _Light  # noqa: PLC0415 (lights imports nothing from here; keep the module light)
+
+        self.replayable = isinstance(light, _Light) and self.n_pix > 0
+        if self.replayable:
+            self.light_fields = tuple(n for n in light._tensors + ("world_to_light",) if getattr(light, n) is not None)
+            if self.mis and hasattr(light, "_sampling_tables"):
+                light._sampling_tables()
+
+    def inputs(self) -> list:
+        return [getattr(self.point, n) for n in _POINT_FIELDS] + [getattr(self.light, n) for n in self.light_fields]
+
+    def bind(self, inputs):
+        """(ShadingPoint, light) built around ``inputs`` (same order as :meth:`inputs`)."""
+        k = len(_POINT_FIELDS)
+        point = dataclasses.replace(self.point, **dict(zip(_POINT_FIELDS, inputs[:k])))
+        if not self.light_fields:
+            return point, self.light
+        light = copy.copy(self.light)
+        for name, t in zip(self.light_fields, inputs[k:]):
+            setattr(light, name, t)
+        return point, light
+
+    def draw(self, i: int, gen: torch.Generator) -> torch.Tensor:
+        kind, s = self.chunks[i]
+        return torch.rand((self.n_pix, s, 3 if kind == "brdf" else 2), device=self.device, generator=gen)
+
+    def contribution(self, point, light, kind: str, u: torch.Tensor) -> torch.Tensor:
+        """(N, 3) sum over the samples of u (N, S, .) of f L w."""
+        g = self.g
         lookup = lambda d: per_image(light.lookup, d, g.batch, g.num_images)  # noqa: E731
-        light_pdf = lambda d: per_image(light.pdf, d, g.batch, g.num_images)  # noqa: E731
+        n_brdf, n_light = self.n_brdf, self.n_light
 
         def weight(dirs, pdf_brdf):
             if not self.mis:
                 return 1.0 / (n_brdf * pdf_brdf).clamp_min(1e-12)
-            return 1.0 / (n_brdf * pdf_brdf + n_light * light_pdf(dirs).detach()).clamp_min(1e-12)
+            light_pdf = per_image(light.pdf, dirs, g.batch, g.num_images).detach()
+            return 1.0 / (n_brdf * pdf_brdf + n_light * light_pdf).clamp_min(1e-12)
 
-        for s0 in range(0, n_brdf, chunk):
-            s = min(chunk, n_brdf - s0)
-            dirs, pdf = p.sample(self._uniforms((n_pix, s, 3), device, gen))
-            f = p.eval(dirs)
-            total = total + (f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)).sum(1)
-        for s0 in range(0, n_light, chunk):
-            s = min(chunk, n_light - s0)
-            u = self._uniforms((n_pix, s, 2), device, gen)
+        if kind == "brdf":
+            dirs, pdf = point.sample(u)
+        else:
             # env-map sampling: the tables are fixed (detached), directions carry no gradient
             dirs = per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images).detach()
-            f = p.eval(dirs)
-            total = total + (f * lookup(dirs) * weight(dirs, p.pdf(dirs)).unsqueeze(-1)).sum(1)
+            pdf = point.pdf(dirs)
+        f = point.eval(dirs)
+        return (f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)).sum(1)
+
+    def estimate(self, inputs) -> torch.Tensor:
+        """The estimate (N, 3), drawing the chunks' uniforms in order and remembering the generator states."""
+        point, light = self.bind(inputs)
+        self.states = []
+        total = point.normal.new_zeros(self.n_pix, 3)
+        for i, (kind, _) in enumerate(self.chunks):
+            self.states.append(self.gen.get_state())
+            total = total + self.contribution(point, light, kind, self.draw(i, self.gen))
         return total
+
+    def replay_uniforms(self, i: int) -> torch.Tensor:
+        gen = torch.Generator(device=self.device)
+        gen.set_state(self.states[i])
+        return self.draw(i, gen)
+
+
+class _MCReplay(torch.autograd.Function):
+    """MC estimate whose backward replays the samples instead of storing them (see :class:`MCShader`)."""
+
+    @staticmethod
+    def forward(ctx, plan: _MCPlan, *inputs):
+        out = plan.estimate(inputs)  # autograd is off inside forward: nothing per sample is kept
+        ctx.plan = plan
+        tensors = [t if isinstance(t, torch.Tensor) else None for t in inputs]
+        ctx.save_for_backward(*tensors)
+        ctx.others = [None if isinstance(t, torch.Tensor) else t for t in inputs]
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        plan: _MCPlan = ctx.plan
+        saved = [o if t is None else t for t, o in zip(ctx.saved_tensors, ctx.others)]
+        needs = ctx.needs_input_grad[1:]
+        grads: list[torch.Tensor | None] = [None] * len(saved)
+        with torch.enable_grad():
+            leaves = [t.detach().requires_grad_(True) if need else t for t, need in zip(saved, needs)]
+            wrt = [t for t, need in zip(leaves, needs) if need]
+            where = [i for i, need in enumerate(needs) if need]
+            point, light = plan.bind(leaves)
+            for i, (kind, s) in enumerate(plan.chunks):
+                u = plan.replay_uniforms(i)
+                for a in range(0, s, plan.sub):
+                    part = plan.contribution(point, light, kind, u[:, a:a + plan.sub])
+                    got = torch.autograd.grad(part, wrt, grad_out, allow_unused=True)
+                    for j, gr in zip(where, got):
+                        if gr is not None:
+                            grads[j] = gr if grads[j] is None else grads[j].add_(gr)
+        return (None, *grads)
 
 
 def sg_convolve(light, axis: torch.Tensor, sharpness: torch.Tensor, g: "GBuffer", compile: bool = False) -> torch.Tensor:
@@ -163,10 +287,13 @@ class SHShader:
         return p.albedo / math.pi * irr
 
 
-def make_shader(name: str, spp: int = 64, mis: bool = True, seed: int | None = None, compile: bool = False):
-    """Shader by method name: "mc", "sg", "sh" (SH light) or "sh-sg" (diffuse-only with SG light)."""
+def make_shader(name: str, spp: int = 64, mis: bool = True, seed: int | None = None, compile: bool = False,
+                replay: bool = True):
+    """Shader by method name: "mc", "sg", "sh" (SH light) or "sh-sg" (diffuse-only with SG light).
+
+    replay: MC only, see :class:`MCShader` (False: the plain autograd path)."""
     if name == "mc":
-        return MCShader(spp=spp, mis=mis, seed=seed)
+        return MCShader(spp=spp, mis=mis, seed=seed, replay=replay)
     if name == "sg":
         return SGShader(compile)
     if name in ("sh", "sh-sg"):
