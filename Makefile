@@ -21,11 +21,12 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
+.PHONY: setup system-libs test test-fast bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
-	@echo "make test             run the test suite (includes Cycles comparisons)"
+	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
+	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
@@ -57,6 +58,10 @@ $(VENV)/.installed: pyproject.toml
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2 $(PYTEST_ARGS)
 
+# Everything but the tests marked @pytest.mark.slow (Cycles renders, benchmark and study smoke runs).
+test-fast: $(VENV)/.installed
+	$(PY) -m pytest -q -n 2 -m "not slow" $(PYTEST_ARGS)
+
 data: $(addprefix data-,$(DATASETS))
 
 # Resumable: rerunning skips finished samples and redoes partial ones.
@@ -75,7 +80,7 @@ train-%: $(VENV)/.installed
 	done
 
 bench-renderer: $(VENV)/.installed
-	$(PY) -m pipelines.bench_renderer --out results/bench
+	$(PY) -m benchmarks.renderer --out results/bench
 
 # Runs for Tables D and E (glossy): DIB-R's diffuse-only shading with SG light, and K = 4, 8, 16 lobes.
 train-ablations: $(VENV)/.installed
@@ -91,17 +96,17 @@ eval: $(VENV)/.installed
 
 # Time per training iteration and its split (needs the glossy dataset: make data-glossy).
 bench-train: $(VENV)/.installed
-	$(PY) -m pipelines.bench_train --dataset $(DATA)/glossy --out results/bench
+	$(PY) -m benchmarks.train_step --dataset $(DATA)/glossy --out results/bench
 
 # Table B: the same env-map optimisation in dibrpp and Mitsuba 3, wall time and peak memory.
 bench-mitsuba: $(VENV)/.installed
-	$(PY) -m pipelines.bench_mitsuba --out results/bench
+	$(PY) -m benchmarks.mitsuba --out results/bench
 
 bench: bench-renderer bench-mitsuba bench-train
 
 # Figures A-E of the supplementary material (Sec. B, C) on this machine.
 studies: $(VENV)/.installed
-	$(PY) -m pipelines.studies --out results/studies
+	$(PY) -m studies --out results/studies
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -5,8 +5,10 @@ import csv
 import numpy as np
 import pytest
 
-from pipelines import bench_mitsuba
-from pipelines.bench_mitsuba import MitsubaBackend, Task
+from benchmarks import envmap_mitsuba
+from benchmarks import mitsuba as bench_mitsuba
+from benchmarks.envmap_mitsuba import MitsubaBackend
+from benchmarks.envmap_task import Task
 
 
 def _assert_converged(row: dict) -> None:
@@ -25,10 +27,10 @@ def test_quick_benchmark_optimises_with_both_renderers(tmp_path):
     assert "| time of 20 iterations (s) |" in md and "paper Mitsuba 2" in md
     assert (tmp_path / "mitsuba.png").stat().st_size > 0
     _assert_converged(rows["dibrpp"])
-    missing = bench_mitsuba.mitsuba_missing(Task.variant)
+    missing = envmap_mitsuba.mitsuba_missing(Task.variant)
     if missing:
         assert rows["mitsuba"]["status"].startswith("skipped")
-        pytest.skip(bench_mitsuba.install_hint(missing))
+        pytest.skip(envmap_mitsuba.install_hint(missing))
     _assert_converged(rows["mitsuba"])
 
 
@@ -36,10 +38,10 @@ def test_mitsuba_envmap_texels_sit_at_blender_directions():
     """Mitsuba's emitter (rotated by MITSUBA_ENV_TO_WORLD) returns texel (j, i) exactly in the world direction
     that Blender's mapping gives u = (i + .5) / W, v = j / (H - 1); a mirrored or rotated map would not."""
     task = Task(env_height=8, env_width=16, threads=1)
-    missing = bench_mitsuba.mitsuba_missing(task.variant)
+    missing = envmap_mitsuba.mitsuba_missing(task.variant)
     if missing:
-        pytest.skip(bench_mitsuba.install_hint(missing))
-    mi, dr = bench_mitsuba.import_mitsuba(task)
+        pytest.skip(envmap_mitsuba.install_hint(missing))
+    mi, dr = envmap_mitsuba.import_mitsuba(task)
     backend = MitsubaBackend(task, mi, dr)
     data = np.random.default_rng(0).uniform(0.1, 1.0, (8, 16, 3)).astype(np.float32)
     backend.set_envmap(mi.TensorXf(data))

@@ -1,4 +1,6 @@
-"""Renderer benchmark: prints tables and writes Markdown/CSV under --out.
+"""Table A, renderer scaling: prints tables and writes Markdown/CSV under --out.
+
+    python -m benchmarks.renderer --out results/bench [--quick] [--repeats 5]
 
 (a) the training workload (32 renders of 64x64, 642-vertex sphere, SG K=32), forward and forward+backward;
 (b) shading cost at 256x256 (rasterization cached): SG for K in 1..128 and MC for N in 1..1024 (Table A's shape);
@@ -8,7 +10,6 @@ Peak memory is the process's peak RSS above its level before the case (Linux /pr
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import os
 import time
@@ -16,43 +17,29 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere, rasterize
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.renderer import build_gbuffer
 from dibrpp.shading import MCShader, SGShader
+from pipelines.formatting import format_number, markdown_table, write_csv
 
 SG_FLOP_PER_PIXEL_LOBE = 180  # inner products of the diffuse and specular lobes, RGB
-
-
-def _rss_mb(field: str) -> float:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def _reset_peak():
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
 
 
 def measure(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
     """Median seconds per call and peak RSS growth (MB) while calling ``fn``."""
     for _ in range(warmup):
         fn()
-    _reset_peak()
-    base = _rss_mb("VmRSS")
+    reset_peak_rss()
+    base = rss_mb("VmRSS")
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
     times.sort()
-    return times[len(times) // 2], max(0.0, _rss_mb("VmHWM") - base)
+    return times[len(times) // 2], max(0.0, rss_mb("VmHWM") - base)
 
 
 def random_sg_light(k: int, batch: int = 1, seed: int = 0) -> SGLight:
@@ -171,35 +158,29 @@ def table_a(rows: list[dict]) -> str:
     """The paper's Table A layout: shading time per K (SG) and N (MC), ours beside the paper's GPU row."""
     def value(case_prefix, v, pass_, key="ms"):
         hit = [r for r in rows if r["case"].startswith(f"{case_prefix}={v},") and r["pass"] == pass_]
-        return f"{hit[0][key]:.{2 if key == 'flop_bound_ms' else 0}f}" if hit else "—"
+        return format_number(hit[0][key] if hit else None, f".{2 if key == 'flop_bound_ms' else 0}f")
 
     parts = []
     for kind, sym in (("SG", "K"), ("MC", "N")):
         vals = list(PAPER_TABLE_A[kind])
-        lines = [f"| {kind}, {sym} | " + " | ".join(map(str, vals)) + " |", "|---|" + "---:|" * len(vals)]
+        body = []
         variants = ([("SG", "eager"), ("SG-compiled", "compiled")] if kind == "SG" else [("MC", "with MIS")])
         for prefix, label in variants:
             for pass_ in ("forward", "forward+backward"):
-                lines.append(f"| ours {label}, {pass_} (ms) | " + " | ".join(value(f"{prefix} {sym}", v, pass_) for v in vals) + " |")
+                body.append([f"ours {label}, {pass_} (ms)"] + [value(f"{prefix} {sym}", v, pass_) for v in vals])
         if kind == "SG":
-            lines.append("| FLOP bound, forward (ms) | " + " | ".join(value("SG K", v, "forward", "flop_bound_ms") for v in vals) + " |")
-        lines.append("| paper, GPU, forward (ms) | " + " | ".join(f"{t:.1f}" for t in PAPER_TABLE_A[kind].values()) + " |")
-        parts.append("\n".join(lines))
+            body.append(["FLOP bound, forward (ms)"] + [value("SG K", v, "forward", "flop_bound_ms") for v in vals])
+        body.append(["paper, GPU, forward (ms)"] + [f"{t:.1f}" for t in PAPER_TABLE_A[kind].values()])
+        parts.append(markdown_table([f"{kind}, {sym}", *vals], body, "l" + "r" * len(vals)))
     return "\n\n".join(parts)
 
 
 def write_tables(rows: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
-    keys = ["case", "pass", "ms", "peak_mb", "flop_bound_ms"]
-    with open(out / "renderer.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    lines = ["| case | pass | time (ms) | peak RSS (MB) | SG FLOP bound (ms) |", "|---|---|---:|---:|---:|"]
-    for r in rows:
-        fb = f"{r['flop_bound_ms']:.2f}" if "flop_bound_ms" in r else ""
-        lines.append(f"| {r['case']} | {r['pass']} | {r['ms']:.1f} | {r['peak_mb']:.0f} | {fb} |")
-    text = "\n".join(lines)
+    write_csv(out / "renderer.csv", rows, ["case", "pass", "ms", "peak_mb", "flop_bound_ms"])
+    text = markdown_table(["case", "pass", "time (ms)", "peak RSS (MB)", "SG FLOP bound (ms)"],
+                          [[r["case"], r["pass"], f"{r['ms']:.1f}", f"{r['peak_mb']:.0f}",
+                            format_number(r.get("flop_bound_ms"), ".2f", missing="")] for r in rows], "llrrr")
     (out / "renderer.md").write_text(text + "\n")
     summary = table_a(rows)
     (out / "table_a.md").write_text(summary + "\n")

@@ -1,7 +1,8 @@
 """Smoke runs of the benchmarks: they run end to end and write their tables (numbers are not asserted)."""
 import csv
 
-from pipelines import bench_renderer, bench_train
+from benchmarks import renderer as bench_renderer
+from benchmarks import train_step as bench_train
 
 
 def test_renderer_benchmark_quick(tmp_path):

@@ -5,7 +5,11 @@ import csv
 import pytest
 import torch
 
-from pipelines import studies
+from dibrpp.conventions import equirect_solid_angles
+from studies.__main__ import main
+from studies.common import procedural_envmap
+from studies.joint_fit import PAPER_FIG_E
+from studies.noise import unbiased_rmse
 
 TABLES = ("fig_a_noise", "fig_a_summary", "fig_b_fit", "fig_c_ambiguity", "fig_de_joint")
 FIGURES = ("fig_a_grid_brdf", "fig_a_grid_mis", "fig_a_noise", "fig_b_grid", "fig_b_error", "fig_c_ambiguity",
@@ -17,7 +21,7 @@ def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("studies")
     threads = torch.get_num_threads()
     try:
-        assert studies.main(["--quick", "--out", str(out), "--threads", "1"]) == 0
+        assert main(["--quick", "--out", str(out), "--threads", "1"]) == 0
     finally:
         torch.set_num_threads(threads)
     return out
@@ -77,24 +81,24 @@ def test_fig_de_joint_optimisation_reduces_the_image_error(quick):
         assert 0.035 <= float(r["beta_opt"]) <= 1 and 0 <= float(r["s_opt"]) <= 2
         assert r["within_tol"] == ("yes" if abs(float(r["beta_opt"]) - float(r["beta_gt"])) <= 0.02 else "no")
     sg = [r for r in table if r["shading"] == "SG"]
-    assert all(float(r["paper_beta_opt"]) == studies.PAPER_FIG_E[float(r["beta_gt"])][i][1] for i, r in enumerate(sg))
+    assert all(float(r["paper_beta_opt"]) == PAPER_FIG_E[float(r["beta_gt"])][i][1] for i, r in enumerate(sg))
 
 
 def test_procedural_envmap_is_hdr_and_varies_with_the_seed():
-    a, b = studies.procedural_envmap(32, 64, seed=0), studies.procedural_envmap(32, 64, seed=1)
+    a, b = procedural_envmap(32, 64, seed=0), procedural_envmap(32, 64, seed=1)
     assert a.image.shape == (1, 32, 64, 3) and (a.image > 0).all()
     assert a.image.max() > 100 * a.image.median()  # a sun
     assert not torch.equal(a.image, b.image)
     # an area-averaged coarse map keeps the light (mostly the sun's) that it would miss if point-sampled
-    assert energy(studies.procedural_envmap(16, 32, supersample=16)) == pytest.approx(
-        energy(studies.procedural_envmap(256, 512)), rel=0.03)
-    assert not torch.equal(studies.procedural_envmap(8, 16, sun=0.0).image, studies.procedural_envmap(8, 16).image)
+    assert energy(procedural_envmap(16, 32, supersample=16)) == pytest.approx(
+        energy(procedural_envmap(256, 512)), rel=0.03)
+    assert not torch.equal(procedural_envmap(8, 16, sun=0.0).image, procedural_envmap(8, 16).image)
 
 
 def energy(env):
     """Integral of the radiance over the sphere, (3,)."""
     h, w = env.image.shape[1:3]
-    return float((studies.equirect_solid_angles(h, w).unsqueeze(-1) * env.image[0]).sum())
+    return float((equirect_solid_angles(h, w).unsqueeze(-1) * env.image[0]).sum())
 
 
 def test_unbiased_rmse_ignores_the_reference_noise():
@@ -102,5 +106,5 @@ def test_unbiased_rmse_ignores_the_reference_noise():
     truth = torch.rand(1, 64, 64, 3, generator=g)
     noisy = lambda std: truth + std * torch.randn(truth.shape, generator=g)  # noqa: E731
     mask = torch.ones(1, 64, 64)
-    rmse = studies.unbiased_rmse(noisy(0.1), noisy(0.05), noisy(0.05), mask)
+    rmse = unbiased_rmse(noisy(0.1), noisy(0.05), noisy(0.05), mask)
     assert rmse == pytest.approx(0.1, rel=0.05)  # the references' own noise (0.05) is not counted

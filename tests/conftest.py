@@ -1,3 +1,4 @@
+"""Fixtures shared by the suites (tests/pipelines, tests/benchmarks): a tiny Cycles-rendered dataset."""
 import subprocess
 import sys
 

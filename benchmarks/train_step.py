@@ -1,6 +1,6 @@
 """Training-iteration benchmark: time per iteration of the CPU default config and its split.
 
-    python -m pipelines.bench_train --dataset data/glossy [--shading sg] [--iterations 20]
+    python -m benchmarks.train_step --dataset data/glossy [--shading sg] [--iterations 20]
 
 Phases: data (drawing the batch from the decoded tensors), encoder (forward), render + losses
 (eq. 8: 32 renders of 64x64 for 8 objects x 2 views), backward, optimiser step. Prints a table and
@@ -9,7 +9,6 @@ writes Markdown/CSV under --out.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -19,8 +18,8 @@ import torch
 
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-
-from .train import TrainConfig, TrainingData, make_model, make_renderer, multiview_losses
+from pipelines.formatting import markdown_table, write_csv
+from pipelines.train import TrainConfig, TrainingData, make_model, make_renderer, multiview_losses
 
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
@@ -81,15 +80,12 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cols = ["shading", *PHASES, "total"]
-    with open(out / "train.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, cols)
-        w.writeheader()
-        w.writerows(results)
+    write_csv(out / "train.csv", results, cols)
     cfg = TrainConfig.preset("cpu")
     lines = [f"Training iteration, CPU default config ({cfg.batch_objects} objects x 2 views, {4 * cfg.batch_objects} "
              f"renders of {resolution}x{resolution}, K={cfg.lobes}, MC spp={cfg.spp}); ms, median of "
-             f"{args.iterations}", "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join([r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]]) + " |" for r in results]
+             f"{args.iterations}", "",
+             markdown_table(cols, [[r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]] for r in results])]
     (out / "train.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'train.md'}")
     return 0

@@ -1,0 +1,69 @@
+"""Table B, the dibrpp side: the env-map optimisation with ``Renderer("mc")`` and torch Adam."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from benchmarks.envmap_task import ALBEDO, CAMERA, INIT_RADIANCE, ROUGHNESS, SPHERE_SUBDIVISIONS, Task, learning_rate
+from dibrpp import Cameras, Material, Renderer, icosphere
+from dibrpp import conventions as conv
+from dibrpp.lights import EnvMap
+
+
+class DibrppBackend:
+    """Env-map optimisation with dibrpp; texels live at Blender's texel centres ((i + .5) / W, (j + .5) / H)."""
+
+    name = "dibrpp"
+
+    def __init__(self, task: Task):
+        self.task, self.device = task, torch.device(task.device)
+        self.mesh = icosphere(SPHERE_SUBDIVISIONS, device=self.device)
+        self.cameras = Cameras.orbit(CAMERA["distance"], CAMERA["elevation_deg"], CAMERA["azimuth_deg"],
+                                     CAMERA["fov_deg"], task.resolution, device=self.device)
+        self.material = Material(albedo=torch.tensor([ALBEDO], device=self.device), roughness=ROUGHNESS, metallic=1.0)
+
+    def texel_directions(self) -> torch.Tensor:
+        return conv.equirect_directions(self.task.env_height, self.task.env_width)
+
+    def render(self, env: torch.Tensor, spp: int, seed: int | None = None) -> torch.Tensor:
+        renderer = Renderer("mc", spp=spp, mis=True, seed=seed)
+        return renderer(self.mesh, self.cameras, self.material, EnvMap(env.unsqueeze(0))).rgb[0]
+
+    def render_still(self, env: np.ndarray, spp: int, seed: int) -> np.ndarray:
+        """A map (H, W, 3) on this renderer's texel grid rendered without gradients."""
+        with torch.no_grad():
+            return self.render(torch.from_numpy(env).to(self.device), spp, seed).cpu().numpy()
+
+    def start(self, ref: np.ndarray) -> None:
+        """Fresh grey log-texels and optimiser."""
+        self.ref = torch.from_numpy(ref).to(self.device)
+        shape = (self.task.env_height, self.task.env_width, 3)
+        self.log_env = torch.full(shape, math.log(INIT_RADIANCE), device=self.device, requires_grad=True)
+        self.opt = torch.optim.Adam([self.log_env], lr=self.task.lr)
+
+    def step(self, it: int) -> float:
+        self.opt.param_groups[0]["lr"] = learning_rate(self.task, it)
+        self.opt.zero_grad(set_to_none=True)
+        env = self.log_env.exp()
+        image = self.render(env, self.task.spp)
+        if self.task.dibrpp_gradient == "correlated":
+            # the residual and d image / d env share their samples: E[gradient] also minimises the render's
+            # variance, which pulls the optimum towards a blurred sun
+            loss = (image - self.ref).square().mean()
+            loss.backward()
+        else:
+            # residual from a second, independent render: an unbiased gradient of |E[image] - ref|^2 (what
+            # Mitsuba's prb computes; its primal and adjoint passes must use different seeds)
+            with torch.no_grad():
+                residual = self.render(env, self.task.spp) - self.ref
+            loss = residual.square().mean()
+            (2 * residual * image).mean().backward()
+        self.opt.step()
+        return loss.item()
+
+    def native_envmap(self) -> np.ndarray:
+        return self.log_env.detach().exp().cpu().numpy()
+
+    envmap = native_envmap  # already on Blender's grid
