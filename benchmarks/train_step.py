@@ -30,7 +30,7 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
     data = TrainingData(config.dataset, config.image_size)
     model = make_model(config)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr)
-    laplacian = uniform_laplacian(model.faces, model.template_verts.shape[1])
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     encoder_s = []
     model.register_forward_pre_hook(lambda *_: encoder_s.append(-time.perf_counter()))
     model.register_forward_hook(lambda *_: encoder_s.__setitem__(-1, encoder_s[-1] + time.perf_counter()))

@@ -22,23 +22,24 @@ from pathlib import Path
 import torch
 
 from dibrpp.io import DataError, atomic_path
+from dibrpp.lights import EnvMap
 
 from . import metrics
 from .dataset import MultiViewDataset, collate
-from .losses import to_display
+from .display import display_srgb, tonemap_envmap
+from .model import encoder_input
 from .report import write_report
 from .tables import write_tables
-from .train import TrainConfig, make_model, make_renderer
+from .train import TrainConfig, load_checkpoint, make_renderer
 
 METRICS = ("image", "iou", "light", "texture", "chamfer")
+LIGHT_METRICS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
 
 
 def load_run(run: Path):
-    """(config, model) of a finished or interrupted run folder."""
+    """(config, model, iteration) of a finished or interrupted run folder."""
     config = TrainConfig(**json.loads((run / "config.json").read_text()))
-    model = make_model(config)
-    state = torch.load(run / "checkpoint.pt", weights_only=False)
-    model.load_state_dict(state["model"])
+    state, model = load_checkpoint(run / "checkpoint.pt")
     model.eval()
     return config, model, state["iteration"]
 
@@ -48,7 +49,7 @@ NOVEL_AZIMUTHS = (90.0, 180.0)  # novel views: the input camera moved this far a
 FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)",
                   *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
 METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC", "texture": "tex 1-NCC",
-                "chamfer": "Chamfer"}
+                "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
 
 
 @torch.no_grad()
@@ -58,9 +59,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     b = collate(items)
     rgba = b["image"][:, 0]
     cams = b["cameras"]
-    inp = torch.cat([to_display(rgba[..., :3]), rgba[..., 3:]], -1)
-    pred = model(inp.permute(0, 3, 1, 2))
-    light = pred.light().in_frame(cams.world_to_camera[:, :3, :3])
+    pred = model(encoder_input(rgba), cams)
+    light = pred.light(cams.world_to_camera)
     out = renderer(pred.meshes(), cams, pred.material(), light)
     gt_mask, env = rgba[..., 3], b["envmap"]
     pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
@@ -69,18 +69,27 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
     chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
                                         samples=4000) for k, gt in enumerate(gt_meshes)]
-    per_view = {"image": metrics.image_l1(to_display(out.rgb), to_display(rgba[..., :3]), gt_mask),
+    per_view = {"image": metrics.image_l1(display_srgb(out.rgb), display_srgb(rgba[..., :3]), gt_mask),
                 "iou": metrics.iou_loss(out.alpha, gt_mask),
                 "light": metrics.ncc_loss(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
                 "chamfer": torch.tensor(chamfer, dtype=torch.float64),
                 # reference: what the light metric gives a constant env map (no prediction at all)
                 "light_constant": metrics.ncc_loss(torch.ones_like(env), env)}
+    gt_light = EnvMap(env)
+    per_view.update(metrics.light_metrics(light, gt_light, cams.world_to_camera))
+    constant = metrics.light_metrics(EnvMap(torch.ones_like(env[:, :8, :16])), gt_light, cams.world_to_camera)
+    # a constant map has no direction: its reference is the guess "the light comes from straight above"
+    up = torch.tensor([0.0, 0.0, 1.0]).expand(len(env), 3)
+    d_gt, frac = metrics.dominant_direction(env)
+    constant["direction_deg"] = torch.where(frac >= metrics.SUN_FRACTION, metrics.angle_deg(up, d_gt),
+                                            torch.full_like(frac, float("nan")))
+    per_view.update({f"{k}_constant": v for k, v in constant.items()})
     rows = []
     if figure:
-        novel = [to_display(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
-        rows = [[to_display(rgba[k, ..., :3]) * rgba[k, ..., 3:], to_display(out.rgb[k]), to_display(albedo[k]),
-                 to_display(b["albedo"][k, 0]), _tonemap(pred_env[k]), _tonemap(env[k]), *(v[k] for v in novel)]
+        novel = [display_srgb(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
+        rows = [[display_srgb(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_srgb(out.rgb[k]), display_srgb(albedo[k]),
+                 display_srgb(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]), *(v[k] for v in novel)]
                 for k in range(len(items))]
     return per_view, rows
 
@@ -98,20 +107,18 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
         for k, v in values.items():
             per_view.setdefault(k, []).append(v)
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
-    result = {k: float(v.mean()) for k, v in per_view.items()}
+    # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
+    # flipped predictions of 180 degrees should not hide that most are right)
+    result = {k: float(v.nanmedian() if k.startswith("direction_deg") else v.mean()) for k, v in per_view.items()}
+    result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(ds))
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
-    worst = {k: int(per_view[k].argmax()) for k in METRICS}
+    worst = {k: int(per_view[k].argmax()) for k in (*METRICS, "probe_metal")}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
     _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True)
     labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k][i]):.3g})" for k, i in worst.items()]
     return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
-
-
-def _tonemap(env: torch.Tensor) -> torch.Tensor:
-    """An HDR map scaled to its own mean (NCC ignores scale), sRGB-encoded, clipped."""
-    return to_display(0.4 * env / env.mean().clamp_min(1e-8)).clamp(0, 1)
 
 
 def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | None = None) -> None:
@@ -147,16 +154,18 @@ def find_runs(root: Path) -> list[Path]:
 
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "shading", "lobes", "seed", "iteration", *METRICS]
+    cols = ["dataset", "shading", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
     with open(out / "all_runs.csv", "w", newline="") as f:
         w = csv.DictWriter(f, cols, extrasaction="ignore")
         w.writeheader()
         w.writerows(results)
-    lines = ["| dataset | method | K | seed | iterations | Image L1 | 2D IoU loss | Light 1-NCC | Tex 1-NCC | Chamfer |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| dataset | method | K | seed | iterations | Image L1 | 2D IoU loss | Light 1-NCC | Tex 1-NCC | Chamfer "
+             "| diffuse probe | metal probe | mirror probe | colour (°) | direction (°) |",
+             "|---|---|---:|---:|---:|" + "---:|" * (len(METRICS) + len(LIGHT_METRICS))]
     for r in results:
         lines.append(f"| {r['dataset']} | {r['shading']} | {r['lobes'] if r['shading'] in ('sg', 'sh-sg') else ''} | "
-                     f"{r['seed']} | {r['iteration']} | " + " | ".join(f"{r[k]:.4f}" for k in METRICS) + " |")
+                     f"{r['seed']} | {r['iteration']} | " + " | ".join(f"{r.get(k, float('nan')):.4f}" for k in METRICS)
+                     + " | " + " | ".join(f"{r.get(k, float('nan')):.3g}" for k in LIGHT_METRICS) + " |")
     text = "\n".join(lines) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
@@ -197,7 +206,7 @@ def main(argv=None) -> int:
                 tmp.write_text(json.dumps(r, indent=1))
         if r["iteration"] < r["trained_iterations"]:
             print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
-        print(f"{run}: " + ", ".join(f"{k} {r[k]:.4f}" for k in METRICS))
+        print(f"{run}: " + ", ".join(f"{k} {r.get(k, float('nan')):.4f}" for k in (*METRICS, *LIGHT_METRICS)))
         results.append(r)
     print(write_table(results, out))
     print(write_tables(out))

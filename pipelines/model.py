@@ -1,21 +1,41 @@
 """The single-image encoder of DIB-R++ (Sec. E.1): shape, texture, material and light from one image.
 
 Shape, texture and material are predicted in the canonical (world) frame; light in the frame of the
-input camera (the renderer rotates it back with the camera's rotation).
+input camera (:meth:`Prediction.light` rotates it into the world with the camera's rotation).
+
+What differs from a plain "global vector -> fully connected heads" encoder, and why:
+
+- **Shape** = template sphere scaled per axis, plus bounded per-vertex offsets, made left/right
+  symmetric (cars and heads are mirror-symmetric about the XZ plane). The scale reaches every object's
+  extent (half-sides 3-21 world units against the data's 4-18), which a capped offset alone could not.
+- **Material** heads reach the ends of their ranges at finite logits (specular and metallic are exactly 0
+  or 1 in the data), and roughness starts where the BRDF's alpha floor starts, so its whole range has
+  gradient.
+- **Texture** reads the input image: every texel of the predicted surface is projected into the input
+  view, and a small network maps what it sees there (colour, features, whether it faces the camera) plus
+  a global code to the albedo. A texture decoded from one global vector has to memorise colours.
+- **Light** is white-balanced (its mean radiance over the sphere is grey), so the one colour
+  degree of freedom a diffuse image cannot tell apart -- a tinted light on a paint vs. the tint in the
+  paint -- goes to the albedo (README, "Light and albedo colour").
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from dibrpp.brdf import Material
+from dibrpp import conventions as conv
+from dibrpp.brdf import MIN_ALPHA, Material
+from dibrpp.camera import Cameras
 from dibrpp.lights import EnvMap, SGLight, SHLight
-from dibrpp.mesh import Meshes, icosphere
+from dibrpp.mesh import Meshes, icosphere, vertex_normals
+from dibrpp.sg import sg_integral
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
+MODEL_VERSION = 2  # bump when parameters or their meaning change: old checkpoints are refused
 
 
 @dataclass
@@ -25,76 +45,174 @@ class ModelConfig:
     image_size: int = 64
     template_subdivisions: int = 3  # 642 vertices
     template_radius: float = 12.0  # objects are normalised to [-18, 18]
-    max_offset: float = 12.0  # bound of a vertex offset (world units)
+    scale_range: tuple[float, float] = (0.25, 1.75)  # per-axis scale of the template (half-sides 3..21)
+    max_offset: float = 6.0  # bound of a vertex offset after scaling (world units)
+    symmetric: bool = True  # mirror symmetry about the XZ plane (y -> -y)
     texture_height: int = 32
     texture_width: int = 64
+    texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
+    light_colour: str = "white"  # white: white-balanced light | free: any colour
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
-    roughness_range: tuple[float, float] = (0.02, 0.8)
+    roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
     width: int = 32  # channels of the first conv layer
+
+    def validate(self) -> None:
+        if self.shading not in LIGHT_KINDS:
+            raise ValueError(f"unknown shading {self.shading!r}; choose from {sorted(LIGHT_KINDS)}")
+        if self.image_size % 16:
+            raise ValueError(f"image_size must be a multiple of 16, got {self.image_size}")
+        if self.texture not in ("projected", "global"):
+            raise ValueError(f"texture must be 'projected' or 'global', got {self.texture!r}")
+        if self.light_colour not in ("white", "free"):
+            raise ValueError(f"light_colour must be 'white' or 'free', got {self.light_colour!r}")
+
+    def to_dict(self) -> dict:
+        return {"version": MODEL_VERSION, **asdict(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        if d.get("version") != MODEL_VERSION:
+            raise ValueError(f"the checkpoint was written by model version {d.get('version')}, this code is version "
+                             f"{MODEL_VERSION}; retrain it (e.g. `make train-glossy`) or check out the matching release")
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names - {"version"}
+        if unknown:
+            raise ValueError(f"the checkpoint's model configuration has unknown fields {sorted(unknown)}")
+        tuples = {"scale_range", "roughness_range"}
+        return cls(**{k: tuple(v) if k in tuples else v for k, v in d.items() if k in names})
+
+
+def encoder_input(rgba: torch.Tensor) -> torch.Tensor:
+    """What the encoder sees: (B, H, W, 4) linear RGBA -> (B, 4, H, W) sRGB-encoded colour on black, alpha."""
+    rgb = conv.linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]
+    return torch.cat([rgb, rgba[..., 3:]], -1).permute(0, 3, 1, 2)
+
+
+def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.05) -> torch.Tensor:
+    """A sigmoid onto [lo, hi] that reaches both ends at finite x (it overshoots by ``margin`` and is clamped)."""
+    t = (1 + 2 * margin) * torch.sigmoid(x) - margin
+    return lo + (hi - lo) * t.clamp(0, 1)
+
+
+def white_balance(light: dict, kind: str, env_height: int) -> dict:
+    """Scale each colour channel so that the light's mean radiance over the sphere is grey."""
+    if kind == "sg":
+        total = sg_integral(light["sharpness"], light["amplitude"]).sum(1)  # (B, 3)
+    elif kind == "sh":
+        total = light["coeffs"][:, 0].clamp_min(1e-4)  # the DC term is the mean radiance (up to a constant)
+    else:
+        theta = (torch.arange(env_height, device=light["image"].device) + 0.5) * math.pi / env_height
+        w = torch.sin(theta).view(1, -1, 1, 1)
+        total = (light["image"] * w).sum((1, 2))
+    gain = total.mean(-1, keepdim=True) / total.clamp_min(1e-8)  # (B, 3)
+    key = {"sg": "amplitude", "sh": "coeffs", "env": "image"}[kind]
+    shape = (-1,) + (1,) * (light[key].dim() - 2) + (3,)
+    return {**light, key: light[key] * gain.view(shape)}
+
+
+class Prediction:
+    """What the encoder predicts for a batch of B images; converts to renderer objects."""
+
+    def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes):
+        self.verts, self.texture = verts, texture
+        self.roughness, self.specular, self.metallic = roughness, specular, metallic
+        self.light_params, self.config, self.template = light_params, config, template
+
+    def meshes(self) -> Meshes:
+        return self.template.with_verts(self.verts)
+
+    def material(self) -> Material:
+        return Material(albedo=self.texture, roughness=self.roughness, metallic=self.metallic,
+                        specular=self.specular, wrap_u=True)
+
+    def light(self, world_to_camera: torch.Tensor):
+        """The predicted light in the world: it was predicted in the frame of the input camera whose
+        world-to-camera transform is ``world_to_camera`` ((B, 4, 4) or (B, 3, 3))."""
+        p = self.light_params
+        kind = LIGHT_KINDS[self.config.shading]
+        if kind == "sg":
+            light = SGLight(p["axis"], p["sharpness"], p["amplitude"])
+        elif kind == "sh":
+            light = SHLight(p["coeffs"])
+        else:
+            light = EnvMap(p["image"])
+        return light.in_frame(world_to_camera[:, :3, :3])
+
+    def select(self, idx) -> "Prediction":
+        pick = lambda t: t[idx]  # noqa: E731
+        return Prediction(pick(self.verts), pick(self.texture), pick(self.roughness), pick(self.specular),
+                          pick(self.metallic), {k: pick(v) for k, v in self.light_params.items()}, self.config, self.template)
 
 
 def _conv(cin, cout):
     return nn.Sequential(nn.Conv2d(cin, cout, 4, 2, 1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2, inplace=True))
 
 
-class Prediction:
-    """What the encoder predicts for a batch of B images; converts to renderer objects."""
+def mirror_index(verts: torch.Tensor) -> torch.Tensor:
+    """(V,) index of each template vertex's mirror image under y -> -y (the icosphere is symmetric)."""
+    mirrored = verts * verts.new_tensor([1.0, -1.0, 1.0])
+    d, idx = torch.cdist(mirrored, verts, compute_mode="donot_use_mm_for_euclid_dist").min(1)
+    if float(d.max()) > 1e-4 * float(verts.norm(dim=-1).max()):
+        raise ValueError("the template is not mirror-symmetric about the XZ plane")
+    return idx
 
-    def __init__(self, offsets, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes):
-        self.offsets, self.texture = offsets, texture
-        self.roughness, self.specular, self.metallic = roughness, specular, metallic
-        self.light_params, self.config, self.template = light_params, config, template
 
-    def meshes(self) -> Meshes:
-        return self.template.with_verts(self.template.verts + self.offsets)
-
-    def material(self) -> Material:
-        return Material(albedo=self.texture, roughness=self.roughness, metallic=self.metallic,
-                        specular=self.specular, wrap_u=True)
-
-    def light(self):
-        """The light in the input camera's frame (no rotation set)."""
-        p = self.light_params
-        kind = LIGHT_KINDS[self.config.shading]
-        if kind == "sg":
-            return SGLight(p["axis"], p["sharpness"], p["amplitude"])
-        if kind == "sh":
-            return SHLight(p["coeffs"])
-        return EnvMap(p["image"])
-
-    def select(self, idx) -> "Prediction":
-        pick = lambda t: t[idx]  # noqa: E731
-        return Prediction(pick(self.offsets), pick(self.texture), pick(self.roughness), pick(self.specular),
-                          pick(self.metallic), {k: pick(v) for k, v in self.light_params.items()}, self.config, self.template)
+def texel_barycentrics(template: Meshes, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each texel of an equirect (height, width) texture on the template sphere: the face its
+    direction hits and the barycentrics, so texel positions follow any deformation of the template."""
+    d = conv.equirect_directions(height, width).reshape(-1, 3)  # texel centre -> direction (Blender's mapping)
+    tri = template.verts[0][template.faces]  # (F, 3, 3)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    # ray o=0, dir d against every face (Moller-Trumbore), the nearest hit with barycentrics >= 0
+    e1, e2 = b - a, c - a
+    p = torch.linalg.cross(d[:, None], e2[None], dim=-1)  # (T, F, 3)
+    det = (p * e1[None]).sum(-1)
+    inv = 1.0 / torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
+    s = -a[None]
+    u = (s * p).sum(-1) * inv
+    q = torch.linalg.cross(s, e1[None].expand_as(s), dim=-1)
+    v = (d[:, None] * q).sum(-1) * inv
+    t = (e2[None] * q).sum(-1) * inv
+    ok = (u >= -1e-5) & (v >= -1e-5) & (u + v <= 1 + 1e-5) & (t > 0)
+    face = torch.where(ok, t, torch.full_like(t, float("inf"))).argmin(1)
+    rows = torch.arange(d.shape[0])
+    uu, vv = u[rows, face].clamp(0, 1), v[rows, face].clamp(0, 1)
+    bary = torch.stack([1 - uu - vv, uu, vv], -1)
+    return face, bary / bary.sum(-1, keepdim=True)
 
 
 class Encoder(nn.Module):
     def __init__(self, config: ModelConfig):
         super().__init__()
+        config.validate()
         self.config = c = config
-        if c.shading not in LIGHT_KINDS:
-            raise ValueError(f"unknown shading {c.shading!r}; choose from {sorted(LIGHT_KINDS)}")
-        if c.image_size % 16:
-            raise ValueError("image_size must be a multiple of 16")
         w = c.width
-        self.backbone = nn.Sequential(_conv(4, w), _conv(w, 2 * w), _conv(2 * w, 4 * w), _conv(4 * w, 8 * w))
+        self.stem = _conv(4, w)  # (w, S/2, S/2): kept for the texture's image look-up
+        self.backbone = nn.Sequential(_conv(w, 2 * w), _conv(2 * w, 4 * w), _conv(4 * w, 8 * w))
         feat = 8 * w * (c.image_size // 16) ** 2
         self.fc = nn.Sequential(nn.Flatten(), nn.Linear(feat, 512), nn.LeakyReLU(0.2, inplace=True))
-        template = icosphere(c.template_subdivisions, radius=c.template_radius)
-        self.register_buffer("template_verts", template.verts)
+        template = icosphere(c.template_subdivisions, radius=1.0)
+        self.register_buffer("template_dirs", template.verts)  # unit sphere
         self.register_buffer("faces", template.faces)
         self.register_buffer("uvs", template.uvs)
         self.register_buffer("face_uvs", template.face_uvs)
+        self.register_buffer("mirror", mirror_index(template.verts[0]))
+        face, bary = texel_barycentrics(template, c.texture_height, c.texture_width)
+        self.register_buffer("texel_face", face)
+        self.register_buffer("texel_bary", bary)
         n_verts = template.verts.shape[1]
-        self.shape_head = nn.Linear(512, n_verts * 3)
+        self.shape_head = nn.Linear(512, n_verts * 3 + 3)  # offsets + per-axis log-scale
         th, tw = c.texture_height // 8, c.texture_width // 8
         self.tex_fc = nn.Linear(512, 4 * w * th * tw)
         self.tex_dec = nn.Sequential(
             nn.Upsample(scale_factor=2), nn.Conv2d(4 * w, 2 * w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
             nn.Upsample(scale_factor=2), nn.Conv2d(2 * w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
-            nn.Upsample(scale_factor=2), nn.Conv2d(w, 3, 3, 1, 1))
+            nn.Upsample(scale_factor=2), nn.Conv2d(w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True))
+        fused = w + (4 + w + 1 if c.texture == "projected" else 0)
+        self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
+                                     nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
         kind = LIGHT_KINDS[c.shading]
         light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
@@ -103,9 +221,11 @@ class Encoder(nn.Module):
 
     def _init_heads(self):
         c = self.config
-        for head in (self.shape_head,):
-            nn.init.zeros_(head.weight)
-            nn.init.zeros_(head.bias)
+        nn.init.zeros_(self.shape_head.weight)
+        nn.init.zeros_(self.shape_head.bias)
+        with torch.no_grad():  # start at the template's radius: log-scale 0 <=> scale 1 in the middle of the range
+            lo, hi = c.scale_range
+            self.shape_head.bias[-3:] = torch.logit(torch.tensor((1.0 - lo) / (hi - lo)))
         nn.init.normal_(self.light_head.weight, std=1e-3)
         nn.init.zeros_(self.light_head.bias)
         kind = LIGHT_KINDS[c.shading]
@@ -127,30 +247,72 @@ class Encoder(nn.Module):
                 self.light_head.bias.fill_(-0.5)
 
     def template(self) -> Meshes:
-        return Meshes(self.template_verts, self.faces, self.uvs, self.face_uvs)
+        return Meshes(self.template_dirs, self.faces, self.uvs, self.face_uvs)
 
-    def forward(self, images: torch.Tensor) -> Prediction:
-        """images: (B, 4, S, S) sRGB-encoded RGB + alpha in [0, 1]."""
+    def _shape(self, raw: torch.Tensor) -> torch.Tensor:
         c = self.config
-        f = self.fc(self.backbone(images))
+        b = raw.shape[0]
+        lo, hi = c.scale_range
+        scale = c.template_radius * (lo + (hi - lo) * torch.sigmoid(raw[:, -3:]))  # (B, 3)
+        offsets = c.max_offset * torch.tanh(raw[:, :-3].view(b, -1, 3) / c.max_offset)
+        if c.symmetric:
+            offsets = 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
+        return self.template_dirs * scale.unsqueeze(1) + offsets
+
+    def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor, verts: torch.Tensor,
+                 cameras: Cameras | None) -> torch.Tensor:
+        c = self.config
+        b, th, tw = f.shape[0], c.texture_height // 8, c.texture_width // 8
+        feats = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))]
+        if c.texture == "projected":
+            if cameras is None:
+                raise ValueError("a projected texture needs the input cameras: call the encoder with cameras=...")
+            feats.append(self._projected(stem, images, verts.detach(), cameras))
+        return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1)  # linear albedo in (0, 1)
+
+    def _projected(self, stem, images, verts, cameras: Cameras) -> torch.Tensor:
+        """What the input view shows at each texel of the predicted surface: colour and alpha, stem
+        features, and how squarely the texel faces the camera (0 where it faces away)."""
+        c = self.config
+        b = verts.shape[0]
+        corners = self.faces[self.texel_face]  # (T, 3) vertex indices
+        weights = self.texel_bary[None, :, :, None]
+        pos = (verts[:, corners] * weights).sum(2)
+        nrm = F.normalize((vertex_normals(verts, self.faces)[:, corners] * weights).sum(2), dim=-1, eps=1e-12)
+        xy, _ = cameras.project(pos)
+        to_cam = F.normalize(cameras.centers.to(pos).unsqueeze(1) - pos, dim=-1)
+        facing = (nrm * to_cam).sum(-1).clamp_min(0)
+        grid = torch.stack([xy[..., 0], -xy[..., 1]], -1).view(b, c.texture_height, c.texture_width, 2)
+        seen = torch.cat([F.grid_sample(images, grid, align_corners=False, padding_mode="zeros"),
+                          F.grid_sample(stem, grid, align_corners=False, padding_mode="zeros")], 1)
+        facing = facing.view(b, 1, c.texture_height, c.texture_width)
+        return torch.cat([seen * (facing > 0), facing], 1)
+
+    def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
+        """images: (B, 4, S, S) from :func:`encoder_input`; cameras: the B input views (needed by the
+        projected texture)."""
+        c = self.config
+        stem = self.stem(images)
+        f = self.fc(self.backbone(stem))
         b = images.shape[0]
-        offsets = c.max_offset * torch.tanh(self.shape_head(f).view(b, -1, 3) / c.max_offset * 4) / 4
-        t = self.tex_fc(f).view(b, -1, c.texture_height // 8, c.texture_width // 8)
-        texture = torch.sigmoid(self.tex_dec(t)).permute(0, 2, 3, 1)  # linear albedo in (0, 1)
-        mat = torch.sigmoid(self.material_head(f))
+        verts = self._shape(self.shape_head(f))
+        texture = self._texture(f, stem, images, verts, cameras)
+        mat = self.material_head(f)
         lo, hi = c.roughness_range
-        roughness = lo + (hi - lo) * mat[:, 0]
-        specular = mat[:, 1]
-        metallic = mat[:, 2] if c.predict_metallic else torch.zeros_like(mat[:, 2])
+        roughness = squash(mat[:, 0], lo, hi)
+        specular = squash(mat[:, 1])
+        metallic = squash(mat[:, 2]) if c.predict_metallic else torch.zeros_like(mat[:, 2])
         raw = self.light_head(f)
         kind = LIGHT_KINDS[c.shading]
         if kind == "sg":
             raw = raw.view(b, c.lobes, 7)
-            light = {"axis": torch.nn.functional.normalize(raw[..., :3], dim=-1, eps=1e-6),
-                     "sharpness": torch.nn.functional.softplus(raw[..., 3]) + 0.5,
-                     "amplitude": torch.nn.functional.softplus(raw[..., 4:])}
+            light = {"axis": F.normalize(raw[..., :3], dim=-1, eps=1e-6),
+                     "sharpness": F.softplus(raw[..., 3]) + 0.5,
+                     "amplitude": F.softplus(raw[..., 4:])}
         elif kind == "sh":
             light = {"coeffs": raw.view(b, 9, 3)}
         else:
-            light = {"image": torch.nn.functional.softplus(raw.view(b, c.env_height, c.env_width, 3))}
-        return Prediction(offsets, texture, roughness, specular, metallic, light, c, self.template())
+            light = {"image": F.softplus(raw.view(b, c.env_height, c.env_width, 3))}
+        if c.light_colour == "white":
+            light = white_balance(light, kind, c.env_height)
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template())

@@ -9,14 +9,13 @@ Writes into --out: ``mesh.obj`` + ``mesh.mtl`` + ``texture.png`` (opens textured
 The image needs an alpha channel (the object's mask), as the datasets have; an RGB image is accepted
 only with ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the
 documented foreground extraction for renders on a flat background). Any size is resized to the model's.
-The input camera is taken to be the training set-up (distance 60, elevation 27°, the dataset's field of
-view) at ``--azimuth`` degrees.
+The input camera is taken to be the training set-up (distance, elevation and field of view of the
+training dataset, stored with the run in ``camera.json``) at ``--azimuth`` degrees.
 """
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -26,11 +25,10 @@ import torch
 from dibrpp import Cameras
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
+from .display import display_srgb
 from .evaluate import load_run
-from .losses import to_display
-from .train import make_renderer
-
-DISTANCE, ELEVATION, FOV_DEG = 60.0, 27.0, math.degrees(2 * math.atan(18.0 / 50.0))
+from .model import encoder_input
+from .train import make_renderer, run_camera_setup
 
 
 def load_input(path, size: int, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
@@ -42,8 +40,8 @@ def load_input(path, size: int, background: tuple[float, float, float] | None, t
         if background is None:
             raise DataError(f"{path}: no alpha channel; give the object's mask as alpha (RGBA PNG/EXR) or pass "
                             "--background R,G,B (sRGB 0-1) to cut out a flat background")
-        bg = to_display(torch.tensor(background)).new_tensor(background)
-        distance = (to_display(img) - bg).abs().amax(-1)
+        bg = torch.tensor(background, dtype=img.dtype)
+        distance = (display_srgb(img) - bg).abs().amax(-1)
         img = torch.cat([img, (distance > tolerance).float().unsqueeze(-1)], -1)
     img = img[..., :4]
     if img[..., 3].max() <= 0:
@@ -63,11 +61,12 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64) -> dict:
     config, model, _ = load_run(run)
+    setup = run_camera_setup(run)
+    orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
     rgba = load_input(image, config.image_size, background, tolerance)
-    inp = torch.cat([to_display(rgba[..., :3]) * rgba[..., 3:], rgba[..., 3:]], -1)
-    pred = model(inp.permute(2, 0, 1)[None])
-    cam = Cameras.orbit(DISTANCE, ELEVATION, azimuth, FOV_DEG, config.image_size)
-    light = pred.light().in_frame(cam.world_to_camera[:, :3, :3])
+    cam = orbit(azimuth, config.image_size)
+    pred = model(encoder_input(rgba[None]), cam)
+    light = pred.light(cam.world_to_camera)
     out.mkdir(parents=True, exist_ok=True)
     mesh = pred.meshes()
     write_png(out / "texture.png", pred.texture[0])
@@ -76,17 +75,15 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     write_exr(out / "envmap.exr", light.to_envmap(64, 128).image[0])
     material = dict(roughness=float(pred.roughness[0]), specular=float(pred.specular[0]),
                     metallic=float(pred.metallic[0]), shading=config.shading, checkpoint=str(run),
-                    input=str(image), input_camera=dict(distance=DISTANCE, elevation_deg=ELEVATION,
-                                                         azimuth_deg=azimuth, fov_deg=FOV_DEG))
+                    input=str(image), input_camera=dict(setup, azimuth_deg=azimuth))
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
     config.spp = spp
     azimuths = azimuth + torch.arange(views) * (360.0 / views)
-    cams = Cameras.orbit(DISTANCE, ELEVATION, azimuths, FOV_DEG, 2 * config.image_size)
-    rotation = cam.world_to_camera[:, :3, :3].expand(views, 3, 3)
+    cams = orbit(azimuths, 2 * config.image_size)
     repeated = pred.select([0] * views)
     renders = make_renderer(config, seed=0)(repeated.meshes(), cams, repeated.material(),
-                                            repeated.light().in_frame(rotation)).image
+                                            repeated.light(cam.world_to_camera.expand(views, 4, 4))).image
     strip = torch.cat([torch.cat([renders[i, ..., :3] * renders[i, ..., 3:], renders[i, ..., 3:]], -1)
                        for i in range(views)], 1)
     write_png(out / "novel_views.png", strip)

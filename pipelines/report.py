@@ -10,7 +10,7 @@ from pathlib import Path
 
 from dibrpp.io import atomic_path
 
-from .tables import COLUMNS, HEADER, _fmt, build_tables, load_results
+from .tables import COLUMNS, HEADER, LIGHT_COLUMNS, LIGHT_HEADER, build_tables, load_results, row_cells
 
 STYLE = """body{font-family:sans-serif;margin:2em;max-width:1500px}table{border-collapse:collapse;margin:.5em 0}
 td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}td:first-child,th:first-child{text-align:left}
@@ -24,12 +24,11 @@ def _img(path: Path) -> str:
 
 
 def _table_html(tab: dict) -> str:
-    head = "<tr><th></th>" + "".join(f"<th>{h} ours</th><th>{h} paper</th>" for h in HEADER) + "<th></th></tr>"
+    head = ("<tr><th></th>" + "".join(f"<th>{h} ours</th><th>{h} paper</th>" for h in HEADER)
+            + "".join(f"<th>{html.escape(h)}</th>" for h in LIGHT_HEADER) + "<th></th></tr>")
     rows = []
     for r in tab["rows"]:
-        cells = []
-        for i in range(len(COLUMNS)):
-            cells += [_fmt(None if r["ours"] is None else r["ours"][i]), _fmt(None if r["paper"] is None else r["paper"][i])]
+        cells = row_cells(r)
         note = f'<td class="missing">{html.escape(r["note"])}</td>' if r["note"] else "<td></td>"
         rows.append(f"<tr><td>{html.escape(r['label'])}</td>" + "".join(f"<td>{c}</td>" for c in cells) + note + "</tr>")
     claims = "".join(f"<li>{html.escape(c)}</li>" for c in tab["claims"])
@@ -50,7 +49,7 @@ def write_report(eval_dir: Path) -> Path:
         figure = eval_dir / r["dataset"] / f"{Path(r['run']).name}.png"
         failures = figure.with_name(f"{Path(r['run']).name}_failures.png")
         curve = Path(r["run"]) / "loss.png"
-        metrics = ", ".join(f"{c} {r[c]:.4f}" for c in (*COLUMNS, "chamfer"))
+        metrics = ", ".join(f"{c} {r[c]:.4f}" for c in (*COLUMNS, "chamfer", *LIGHT_COLUMNS) if c in r)
         parts.append(f"<h3>{html.escape(r['dataset'])} / {html.escape(Path(r['run']).name)}</h3>"
                      f"<p>{html.escape(metrics)} (iteration {r['iteration']}, {r['test_views']} test views)</p>"
                      "<div class='run'>" + (_img(figure) if figure.exists() else "")

@@ -11,8 +11,11 @@ import json
 import statistics
 from pathlib import Path
 
-COLUMNS = ("image", "iou", "light", "texture")
+COLUMNS = ("image", "iou", "light", "texture")  # the paper's columns: ours beside the paper's
 HEADER = ("Image", "2D IoU", "Light", "Tex.")
+# Light by what it does to surfaces (pipelines.metrics.light_metrics); ours only, the paper has no such column.
+LIGHT_COLUMNS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
+LIGHT_HEADER = ("Diffuse probe", "Metal probe", "Mirror probe", "Colour (°)", "Direction (°)")
 
 # The paper's numbers (supplementary Tables C-F; Table 1's glossy SG / SH rows are Table D's).
 PAPER = {
@@ -45,24 +48,29 @@ def load_results(eval_dir: Path) -> dict:
     return out
 
 
-def _fmt(v) -> str:
-    return "—" if v is None else f"{v:.3f}"
+def format_value(v) -> str:
+    """Table cell: 3 decimals for losses, 1 for angles in degrees, a dash where there is no value."""
+    if v is None or v != v:
+        return "—"
+    return f"{v:.1f}" if abs(v) >= 10 else f"{v:.3f}"
 
 
 def _row(label: str, key: tuple, results: dict, missing_hint: str) -> dict:
     r = results.get(key)
-    paper = PAPER.get(key)
-    return dict(label=label, ours=None if r is None else tuple(r[c] for c in COLUMNS), paper=paper,
+    return dict(label=label, ours=None if r is None else tuple(r[c] for c in COLUMNS), paper=PAPER.get(key),
+                light=None if r is None else tuple(r.get(c) for c in LIGHT_COLUMNS),
                 note="" if r else f"missing: {missing_hint}", iterations=None if r is None else r["iteration"])
 
 
 def _constant_light_row(ds: str, results: dict) -> list[dict]:
-    """Reference row: the light metric of a constant env map on the dataset's test views (from any run)."""
-    v = next((r["light_constant"] for r in results.values() if r["dataset"] == ds and "light_constant" in r), None)
-    if v is None:
+    """Reference row: the light metrics of a constant env map on the dataset's test views (from any run);
+    its direction is the guess "straight above"."""
+    r = next((r for r in results.values() if r["dataset"] == ds and "light_constant" in r), None)
+    if r is None:
         return []
-    return [dict(label=f"{ds} / constant light (reference)", ours=(None, None, v, None), paper=None,
-                 note="Light of a constant env map", iterations=None)]
+    return [dict(label=f"{ds} / constant light (reference)", ours=(None, None, r["light_constant"], None), paper=None,
+                 light=tuple(r.get(f"{c}_constant") for c in LIGHT_COLUMNS),
+                 note="a constant env map (direction: straight above)", iterations=None)]
 
 
 def build_tables(results: dict) -> dict[str, dict]:
@@ -101,7 +109,7 @@ def _spread(seeds: list[dict]) -> list[dict]:
     def stat(fn, vals):
         return tuple(fn([v[i] for v in vals]) for i in range(len(COLUMNS))) if len(vals) >= 2 else None
 
-    return [dict(label=name, ours=stat(fn, got), paper=PAPER_SPREAD[name], note="" if len(got) == 3 else
+    return [dict(label=name, ours=stat(fn, got), paper=PAPER_SPREAD[name], light=None, note="" if len(got) == 3 else
                  f"over {len(got)} of 3 seeds", iterations=None)
             for name, fn in (("mean", statistics.mean), ("variance", statistics.variance), ("std. dev.", statistics.stdev))]
 
@@ -129,6 +137,17 @@ def _claims(t: dict, results: dict) -> None:
             claim(table, f"on {ds} surfaces the best predicted light ({METHOD_NAMES[best['shading']]}, "
                   f"{best['light']:.3f}) beats a constant env map ({best['light_constant']:.3f})",
                   best["light"] < best["light_constant"])
+    for ds in ("metallic", "glossy"):
+        const = next((r["probe_metal_constant"] for r in results.values()
+                      if r["dataset"] == ds and "probe_metal_constant" in r), None)
+        sh = metric((ds, "sh", 32, 0), "probe_metal")
+        for m in ("sg", "mc"):
+            v = metric((ds, m, 32, 0), "probe_metal")
+            claim("table1", f"(ours) {METHOD_NAMES[m]}'s light on {ds} lights a rough-metal sphere at least 30 % better "
+                  "(si-RMSE) than a constant map" + ("" if None in (v, const) else f" ({v:.3f} vs {const:.3f})"),
+                  None if None in (v, const) else v <= 0.7 * const)
+            claim("table1", f"(ours) {METHOD_NAMES[m]}'s light on {ds} lights a rough-metal sphere better than SH's",
+                  None if None in (v, sh) else v < sh)
     d = [metric(("diffuse", m, 32, 0), "light") for m in ("mc", "sg", "sh")]
     claim("tableC", "on diffuse surfaces SH has the best light score", None if None in d else d[2] <= min(d[:2]))
     sg, shsg, sh = (metric(("glossy", m, 32, 0), "light") for m in ("sg", "sh-sg", "sh"))
@@ -147,26 +166,32 @@ def _claims(t: dict, results: dict) -> None:
         claim("tableF", "seeds have little effect", None)
 
 
+def row_cells(r: dict) -> list[str]:
+    """The formatted cells of a table row: (ours, paper) per paper column, then ours per light column."""
+    cells = []
+    for i in range(len(COLUMNS)):
+        cells += [format_value(None if r["ours"] is None else r["ours"][i]),
+                  format_value(None if r["paper"] is None else r["paper"][i])]
+    return cells + [format_value(None if r["light"] is None else r["light"][i]) for i in range(len(LIGHT_COLUMNS))]
+
+
 def to_markdown(tab: dict) -> str:
-    head = "| | " + " | ".join(f"{h} ours | {h} paper" for h in HEADER) + " | |"
-    lines = [f"**{tab['title']}**", "", head, "|---|" + "---:|---:|" * len(HEADER) + "---|"]
+    head = "| | " + " | ".join(f"{h} ours | {h} paper" for h in HEADER) + " | " + " | ".join(LIGHT_HEADER) + " | |"
+    lines = [f"**{tab['title']}**", "", head, "|---|" + "---:|---:|" * len(HEADER) + "---:|" * len(LIGHT_HEADER) + "---|"]
     for r in tab["rows"]:
-        cells = []
-        for i in range(len(COLUMNS)):
-            cells += [_fmt(None if r["ours"] is None else r["ours"][i]), _fmt(None if r["paper"] is None else r["paper"][i])]
-        lines.append(f"| {r['label']} | " + " | ".join(cells) + f" | {r['note']} |")
+        lines.append(f"| {r['label']} | " + " | ".join(row_cells(r)) + f" | {r['note']} |")
     lines += [""] + [f"- {c}" for c in tab["claims"]]
     return "\n".join(lines) + "\n"
 
 
 def to_latex(tab: dict) -> str:
-    lines = [r"\begin{tabular}{l" + "rr" * len(HEADER) + "}", r"\toprule",
-             " & " + " & ".join(rf"\multicolumn{{2}}{{c}}{{{h}}}" for h in HEADER) + r" \\",
-             " & " + " & ".join(["ours & paper"] * len(HEADER)) + r" \\", r"\midrule"]
+    light = [h.replace("°", "$^\\circ$") for h in LIGHT_HEADER]
+    lines = [r"\begin{tabular}{l" + "rr" * len(HEADER) + "r" * len(LIGHT_HEADER) + "}", r"\toprule",
+             " & " + " & ".join(rf"\multicolumn{{2}}{{c}}{{{h}}}" for h in HEADER) + " & " + " & ".join(light) + r" \\",
+             " & " + " & ".join(["ours & paper"] * len(HEADER)) + " & " + " & ".join(["ours"] * len(light)) + r" \\",
+             r"\midrule"]
     for r in tab["rows"]:
-        cells = []
-        for i in range(len(COLUMNS)):
-            cells += [_fmt(None if r["ours"] is None else r["ours"][i]), _fmt(None if r["paper"] is None else r["paper"][i])]
+        cells = row_cells(r)
         lines.append(r["label"].replace("_", r"\_") + " & " + " & ".join(cells).replace("—", "--") + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}"]
     return f"% {tab['title']}\n" + "\n".join(lines) + "\n"
@@ -180,7 +205,8 @@ def write_tables(eval_dir: Path) -> str:
     for name, tab in tables.items():
         with open(eval_dir / f"{name}.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["row", *[f"{c}_ours" for c in COLUMNS], *[f"{c}_paper" for c in COLUMNS], "note"])
+            w.writerow(["row", *[f"{c}_ours" for c in COLUMNS], *[f"{c}_paper" for c in COLUMNS], *LIGHT_COLUMNS, "note"])
             for r in tab["rows"]:
-                w.writerow([r["label"], *(r["ours"] or [""] * 4), *(r["paper"] or [""] * 4), r["note"]])
+                w.writerow([r["label"], *(r["ours"] or [""] * len(COLUMNS)), *(r["paper"] or [""] * len(COLUMNS)),
+                            *(r["light"] or [""] * len(LIGHT_COLUMNS)), r["note"]])
     return md

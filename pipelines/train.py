@@ -27,8 +27,9 @@ from dibrpp import Cameras, RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path, write_png
 from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
-from .losses import gradient_loss, image_l1, iou_loss, to_display
-from .model import Encoder, ModelConfig
+from .display import display_srgb, tonemap_envmap
+from .losses import gradient_loss, hdr_srgb, image_l1, soft_iou_loss
+from .model import Encoder, ModelConfig, encoder_input
 
 
 @dataclass
@@ -51,6 +52,8 @@ class TrainConfig:
     snapshot_every: int = 250
     checkpoint_every: int = 100
     predict_metallic: bool = False
+    texture: str = "projected"  # projected | global (ModelConfig.texture)
+    light_colour: str = "white"  # white | free (ModelConfig.light_colour)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # SG shading through torch.compile (falls back to eager where it cannot)
 
@@ -70,7 +73,7 @@ class TrainConfig:
 # ----------------------------------------------------------------------------- data
 
 class TrainingData:
-    """All training views decoded once into tensors: display-space RGBA images and cameras."""
+    """All training views decoded once into tensors: linear RGBA images (HDR, as rendered) and cameras."""
 
     def __init__(self, root: str, image_size: int, split: str = "train"):
         from .dataset import MultiViewDataset
@@ -84,8 +87,7 @@ class TrainingData:
         for s in range(n_samples):
             for v in range(n_views):
                 item = ds[s * n_views + v]
-                rgba = item["image"][0]
-                imgs.append(torch.cat([to_display(rgba[..., :3]), rgba[..., 3:]], -1))
+                imgs.append(item["image"][0])
                 w2c.append(item["world_to_camera"][0])
                 fov.append(item["fov"][0])
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
@@ -109,29 +111,30 @@ class TrainingData:
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian) -> tuple[torch.Tensor, dict, dict]:
     """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots)."""
-    img = batch["image"]  # (B, 2, S, S, 4) display RGB + alpha
+    img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
     b, s = img.shape[0], img.shape[2]
     flat = img.reshape(b * 2, s, s, 4)
-    pred = model(flat.permute(0, 3, 1, 2))  # prediction from every view: index 2i + j
+    views = Cameras(batch["world_to_camera"].reshape(b * 2, 4, 4), batch["fov"].reshape(-1), s)
+    pred = model(encoder_input(flat), views)  # prediction from every view: index 2i + j
     # render prediction i (from view i) in view j with the light predicted from view j
     src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
     dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
-    w2c = batch["world_to_camera"].reshape(b * 2, 4, 4)[dst]
-    cams = Cameras(w2c, batch["fov"].reshape(-1)[dst], s)
+    cams = views[dst.tolist()]
     shape_pred = pred.select(src)
-    light = pred.select(dst).light().in_frame(w2c[:, :3, :3])
+    light = pred.select(dst).light(cams.world_to_camera)
     out = renderer(shape_pred.meshes(), cams, shape_pred.material(), light)
     target = flat[dst]
-    rgb = to_display(out.rgb)
+    rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
     terms = {
-        "image": image_l1(rgb, target[..., :3], target[..., 3]),
-        "iou": iou_loss(out.alpha, target[..., 3]),
-        "laplacian": laplacian_smoothness(pred.offsets + pred.template.verts, laplacian) / pred.config.template_radius ** 2,
-        "gradient": gradient_loss(rgb, target[..., :3] * target[..., 3:]),
+        "image": image_l1(rgb, target_rgb, target[..., 3]),
+        "iou": soft_iou_loss(out.alpha, target[..., 3]),
+        "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
+        "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
     total = sum(weights[k] * v for k, v in terms.items())
-    return total, terms, dict(input=flat, render=rgb, alpha=out.alpha, pred=pred, target=target)
+    return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target,
+                              world_to_camera=views.world_to_camera)
 
 
 def check_finite(terms: dict) -> None:
@@ -157,15 +160,45 @@ def _setup_distributed():
 
 
 def save_checkpoint(path: Path, model, opt, iteration: int, config: TrainConfig) -> None:
-    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": iteration,
-             "config": asdict(config), "torch_rng": torch.get_rng_state()}
+    state = {"model": model.state_dict(), "model_config": model.config.to_dict(), "optimizer": opt.state_dict(),
+             "iteration": iteration, "config": asdict(config), "torch_rng": torch.get_rng_state()}
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
 
 def make_model(config: TrainConfig) -> Encoder:
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
-                               predict_metallic=config.predict_metallic))
+                               predict_metallic=config.predict_metallic, texture=config.texture,
+                               light_colour=config.light_colour))
+
+
+def dataset_camera_setup(dataset: str) -> dict:
+    """The camera set-up of a dataset's views (orbit distance, elevation, field of view), from its manifest."""
+    cam = json.loads(Path(dataset, "manifest.json").read_text())["camera"]
+    return dict(distance=float(cam["distance"]), elevation_deg=float(cam["elevation_deg"]),
+                fov_deg=math.degrees(float(cam["fov"])))
+
+
+def run_camera_setup(run: Path) -> dict:
+    """The camera set-up of the data a run was trained on (saved with the run as camera.json)."""
+    path = Path(run) / "camera.json"
+    if not path.is_file():
+        raise DataError(f"{path} missing: the run predates saved camera set-ups; retrain it")
+    return json.loads(path.read_text())
+
+
+def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
+    """(state, model) of a checkpoint, the model built from the configuration saved with it."""
+    state = torch.load(path, weights_only=False)
+    if "model_config" not in state:
+        raise DataError(f"{path} was written by an older version of the model (no model configuration saved with "
+                        "it); retrain it, e.g. `make train-glossy`")
+    try:
+        model = Encoder(ModelConfig.from_dict(state["model_config"]))
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from e
+    model.load_state_dict(state["model"])
+    return state, model
 
 
 def make_renderer(config: TrainConfig, seed: int) -> Renderer:
@@ -186,7 +219,10 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     ckpt = out / "checkpoint.pt"
     start = 0
     if resume and ckpt.exists():
-        state = torch.load(ckpt, weights_only=False)
+        state, saved = load_checkpoint(ckpt)
+        if saved.config != model.config:
+            raise DataError(f"{ckpt} holds a model configured as {saved.config}, but this run asks for {model.config}; "
+                            "choose another --out or the run's own settings")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["torch_rng"])
@@ -194,9 +230,10 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     elif not resume and ckpt.exists():
         raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
     ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    laplacian = uniform_laplacian(model.faces, model.template_verts.shape[1])
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     if rank == 0:
         (out / "config.json").write_text(json.dumps(asdict(config), indent=2))
+        (out / "camera.json").write_text(json.dumps(dataset_camera_setup(config.dataset), indent=2))
     log_path = out / "log.csv"
     if rank == 0:
         _prepare_log(log_path, start)
@@ -250,21 +287,18 @@ def _prepare_log(log_path: Path, start: int) -> None:
 
 
 def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
-    """Input | re-render | predicted albedo (front view of the texture) | predicted light, for a few items."""
-    from dibrpp.conventions import linear_to_srgb
-
+    """Input | re-render | predicted albedo (the whole texture) | predicted light (world frame), for a few items."""
     n = min(rows, snap["input"].shape[0] // 2)
     pred = snap["pred"]
     s = snap["input"].shape[1]
     tiles = []
     for i in range(n):
         k = 2 * i
-        inp = snap["input"][k, ..., :3] * snap["input"][k, ..., 3:]
-        ren = snap["render"][2 * k].detach()
-        tex = torch.nn.functional.interpolate(linear_to_srgb(pred.texture[k].detach()).permute(2, 0, 1)[None], size=(s, 2 * s))[0].permute(1, 2, 0)
-        light = pred.select([k]).light().to_envmap(s, 2 * s).image[0].detach()
-        light = linear_to_srgb(light / light.max().clamp_min(1e-6))
-        tiles.append(torch.cat([inp, ren, tex, light], 1))
+        inp = display_srgb(snap["input"][k, ..., :3] * snap["input"][k, ..., 3:])
+        ren = display_srgb(snap["render"][2 * k].detach())
+        tex = torch.nn.functional.interpolate(display_srgb(pred.texture[k].detach()).permute(2, 0, 1)[None], size=(s, 2 * s))[0].permute(1, 2, 0)
+        light = pred.select([k]).light(snap["world_to_camera"][[k]]).to_envmap(s, 2 * s).image[0].detach()
+        tiles.append(torch.cat([inp, ren, tex, tonemap_envmap(light)], 1))
     write_png(path, torch.cat(tiles, 0), srgb=False)
 
 

@@ -35,12 +35,12 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
         torch.manual_seed(0)
         model = make_model(cfg)
         data = TrainingData(cfg.dataset, cfg.image_size)
-        lap = uniform_laplacian(model.faces, model.template_verts.shape[1])
+        lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
         total, terms, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 2, 0), cfg, lap)
         pred = snap["pred"]
         # SH shading is Lambertian (DIB-R): roughness and specular do not enter it, by design
         material = [pred.roughness, pred.specular] if shading != "sh" else []
-        tensors = [pred.offsets, pred.texture] + material + list(pred.light_params.values())
+        tensors = [pred.verts, pred.texture] + material + list(pred.light_params.values())
         for t in tensors:
             t.retain_grad()
         total.backward()
