@@ -3,18 +3,19 @@
 The task (everything but the env map fixed): a unit icosphere (2562 vertices, smooth normals) of rough metal
 (Principled meaning: base colour ALBEDO, Roughness 0.3 so GGX alpha = 0.09, Metallic 1), one orbit camera
 (distance 3, elevation 20, azimuth 30, fov 45), lit by a procedural HDR sky (gradient + ground + sun,
-``sky_radiance``); all of it in :mod:`benchmarks.envmap_task`. Each renderer renders its own reference from the
-GT map at high spp, then optimises the map from constant grey with Adam on log-texels (lr 0.05 decaying to
-0.005) against that reference with an image L2 loss at 4 spp. Defaults: 256x256 image, 256x128 map, 300 iterations; --quick: 64x64, 32x16, 20.
+``sky_radiance``); all of it in :mod:`benchmarks.envmap_task`. Each renderer renders its own reference from
+the GT map at high spp, then optimises the map from constant grey with Adam on log-texels (lr 0.05 decaying
+to 0.005) against that reference with an image L2 loss at 4 spp. Defaults: 256x256 image, 256x128 map, 300
+iterations; --quick: 64x64, 32x16, 20.
 
-- dibrpp (:mod:`benchmarks.envmap_dibrpp`): ``Renderer("mc")`` (rasterize, then GGX + env-map MIS shading: 2 + 2 directions per pixel), torch
-  Adam. The loss gradient takes its residual from a second, independent render, as Mitsuba's prb does
-  (--dibrpp-gradient correlated: plain autodiff of one render, cheaper but biased, see
-  benchmarks.envmap_dibrpp.DibrppBackend.step).
-- Mitsuba 3 (:mod:`benchmarks.envmap_mitsuba`): variant llvm_ad_rgb, integrator prb (max_depth 2: direct light only; env map hidden behind the
-  object, as dibrpp leaves the background black), the same mesh and normals, principled BSDF, an envmap
-  emitter whose ``data`` is optimised with mi.ad.Adam. 4 spp = 4 camera rays, each with one emitter and one
-  BSDF sample.
+- dibrpp (:mod:`benchmarks.envmap_dibrpp`): ``Renderer("mc")`` (rasterize, then GGX + env-map MIS shading:
+  2 + 2 directions per pixel), torch Adam. The loss gradient takes its residual from a second, independent
+  render, as Mitsuba's prb does (--dibrpp-gradient correlated: plain autodiff of one render, cheaper but
+  biased, see DibrppBackend.step).
+- Mitsuba 3 (:mod:`benchmarks.envmap_mitsuba`): variant llvm_ad_rgb, integrator prb (max_depth 2: direct
+  light only; env map hidden behind the object, as dibrpp leaves the background black), the same mesh and
+  normals, principled BSDF, an envmap emitter whose ``data`` is optimised with mi.ad.Adam. 4 spp = 4 camera
+  rays, each with one emitter and one BSDF sample.
 
 Each renderer runs in its own subprocesses (reference, then optimisation) so memory does not mix. Reported:
 wall time of the timed iterations (a throw-away warm-up iteration comes first, reported apart: Dr.Jit compiles
