@@ -1,4 +1,4 @@
-"""python -m datagen --dataset {metallic,glossy,diffuse} --out DIR [options]"""
+"""python -m datagen --dataset {metallic,glossy,diffuse} --out DIR [--envmaps DIR [--procedural-envmaps N]] [options]"""
 from __future__ import annotations
 
 import argparse
@@ -16,7 +16,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="default", choices=sorted(PRESETS),
                    help="default: small, for 2 cores; paper: the paper's sizes (485 objects, 256 px)")
     p.add_argument("--num-objects", type=int)
-    p.add_argument("--num-envmaps", type=int)
+    p.add_argument("--num-envmaps", type=int, help="number of procedural env maps (without --envmaps)")
+    p.add_argument("--envmaps", metavar="DIR",
+                   help="light with your own equirect HDRIs: every .exr / .hdr file of DIR (sorted by name; 2:1, "
+                        "Blender's orientation: +Z up, +X at the centre), resampled to --envmap-height; "
+                        "instead of the procedural maps")
+    p.add_argument("--procedural-envmaps", type=int, metavar="N",
+                   help="with --envmaps: add N procedural maps to the files (default 0); each kind is split 4:1")
     p.add_argument("--envs-per-object", type=int)
     p.add_argument("--views", type=int, help="views per object (default 24; 12 front views for diffuse)")
     p.add_argument("--resolution", type=int, help="image side in pixels")
@@ -24,6 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texture-size", type=int)
     p.add_argument("--envmap-height", type=int, help="env map height (width is twice that)")
     p.add_argument("--max-bounces", type=int)
+    p.add_argument("--denoise", action="store_true",
+                   help="denoise the shaded renders with OpenImageDenoise (albedo + normal guides); off by default")
     p.add_argument("--grid", type=int, help="marching-cubes grid of the procedural shapes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2, help="worker processes (bpy is not thread-safe)")
@@ -45,7 +53,8 @@ def main(argv=None) -> int:
                           envs_per_object=args.envs_per_object, views=args.views, resolution=args.resolution,
                           spp=args.spp, seed=args.seed, texture_size=args.texture_size,
                           envmap_height=args.envmap_height, max_bounces=args.max_bounces,
-                          grid=args.grid)
+                          grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
+                          denoise=args.denoise or None)
         shard = parse_shard(args.shard)
         if args.workers <= 0:
             raise ValueError("--workers must be >= 1")

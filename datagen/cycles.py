@@ -12,15 +12,22 @@ square perspective camera, in the project's conventions (:mod:`dibrpp.convention
 
 Typical use::
 
-    out = render_scene(verts, faces, world_to_camera=w2c, fov=fov, resolution=64, envmap=env)
+    out = render_scene(verts, faces, world_to_camera=w2c, fov=fov, resolution=64, envmap=env, roughness=0.3)
     out["rgba"]  # (64, 64, 4) float32
 
-and, to render one scene from many cameras without rebuilding it::
+and, to render one scene from many cameras without rebuilding it, the scene is described by two
+records, :class:`PrincipledMaterial` (what the surface is) and :class:`RenderSettings` (how Cycles
+renders: resolution, samples, bounces, filter, film, denoiser, threads)::
 
-    scene = build_scene(verts, faces, envmap=env, resolution=64, spp=32)
+    scene = build_scene(verts, faces, envmap=env, material=PrincipledMaterial(roughness=0.3),
+                        settings=RenderSettings(resolution=64, spp=32))
     for w2c in cameras:
         set_camera(scene, w2c, fov)
         out = render(scene)
+
+Scenes built by hand with bpy (e.g. :mod:`datagen.envmaps`' skies and rooms) use the same public
+calls: :func:`configure_render` applies a :class:`RenderSettings` to any scene and
+:func:`render_still` renders its active camera to an array.
 
 Only one scene exists at a time (bpy holds one global state): :func:`build_scene` resets Blender
 to empty factory settings first, so calls never leak state into each other. bpy is not
@@ -32,15 +39,16 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 
 from dibrpp.io import DataError, read_exr_channels
 
-__all__ = ["CyclesScene", "build_scene", "set_camera", "set_envmap", "set_seed", "render", "render_scene",
-           "read_render_exr", "reset"]
+__all__ = ["CyclesScene", "PrincipledMaterial", "RenderSettings", "build_scene", "configure_render", "make_world",
+           "read_render_exr", "render", "render_scene", "render_still", "reset", "scratch_dir", "set_camera",
+           "set_envmap", "set_seed"]
 
 _LINEAR_CS = "Linear Rec.709"
 
@@ -48,7 +56,7 @@ _LINEAR_CS = "Linear Rec.709"
 _SCRATCH: str | None = None
 
 
-def _scratch_dir() -> str:
+def scratch_dir() -> str:
     """One per-process scratch folder for Cycles' EXR output, removed at exit."""
     global _SCRATCH
     if _SCRATCH is None or not os.path.isdir(_SCRATCH):
@@ -77,6 +85,114 @@ def _np(x, dtype=None) -> np.ndarray:
     return np.asarray(x, dtype=dtype)
 
 
+# ----------------------------------------------------------------------------- records
+
+_SUBSURFACE_METHODS = ("RANDOM_WALK", "RANDOM_WALK_SKIN", "BURLEY")
+
+
+@dataclass
+class PrincipledMaterial:
+    """One Principled BSDF (GGX), in Cycles' own parameters (see DESIGN.md, "Material").
+
+    ``base_color`` is linear RGB; a ``texture`` (sRGB 8-bit PNG path, or an (H, W, 3) float array of
+    sRGB values in [0, 1], top row first) replaces it and needs UVs on the mesh. ``specular_ior_level``
+    0.5 means F0 = 0.04 (IOR 1.5), 0 removes the specular lobe. ``subsurface_weight`` > 0 turns on
+    subsurface scattering (``subsurface_method``, ``subsurface_radius`` per RGB channel times
+    ``subsurface_scale``, in scene units).
+    """
+
+    base_color: tuple = (0.8, 0.8, 0.8)
+    texture: object = None
+    roughness: float = 0.5
+    metallic: float = 0.0
+    specular_ior_level: float = 0.5
+    subsurface_weight: float = 0.0
+    subsurface_radius: tuple = (1.0, 0.2, 0.1)
+    subsurface_scale: float = 0.05
+    subsurface_method: str = "RANDOM_WALK"
+
+    def validate(self) -> None:
+        for name in ("roughness", "metallic"):
+            val = getattr(self, name)
+            if not 0.0 <= float(val) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {val}")
+        if float(self.specular_ior_level) < 0:
+            raise ValueError(f"specular_ior_level must be >= 0, got {self.specular_ior_level}")
+        if float(self.subsurface_weight) < 0 or float(self.subsurface_scale) < 0:
+            raise ValueError("subsurface_weight and subsurface_scale must be >= 0")
+        if len(tuple(self.subsurface_radius)) != 3:
+            raise ValueError(f"subsurface_radius must have 3 values (R, G, B), got {self.subsurface_radius}")
+        if self.subsurface_method not in _SUBSURFACE_METHODS:
+            raise ValueError(f"subsurface_method must be one of {', '.join(_SUBSURFACE_METHODS)}, "
+                             f"got {self.subsurface_method!r}")
+
+    @classmethod
+    def from_dict(cls, values: dict, **overrides) -> "PrincipledMaterial":
+        """From a dataset's material record (roughness, metallic, specular_ior_level, subsurface_*), plus
+        ``overrides`` (e.g. ``texture=``); an unknown key is an error, not silently dropped."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown material parameter(s) {unknown}; known: {sorted(known)}")
+        return cls(**{**values, **overrides})
+
+
+@dataclass
+class RenderSettings:
+    """How Cycles renders: image size, samples, light paths, pixel filter, film and device.
+
+    ``resolution`` is the image height (and width, unless ``width`` is set: panoramas are 2:1).
+    ``max_bounces`` bounds every kind of bounce (total, diffuse, glossy, transmission).
+    ``filter_width`` is the Blackman-Harris pixel filter's width in pixels (0.01 = pixel centres).
+    ``clamp_indirect``: Cycles' indirect sample clamp (0 = unclamped, the unbiased truth).
+    ``adaptive_threshold`` > 0 turns on Cycles' adaptive sampling (noise threshold; ``spp`` is then the
+    maximum, ``adaptive_min_samples`` the minimum, 0 = automatic). ``denoise`` runs OpenImageDenoise on
+    the shaded render with albedo and normal guides (never on the albedo render).
+    ``threads`` = 0 lets Cycles use every core. ``albedo_aov`` adds the albedo render to :func:`render`.
+    """
+
+    resolution: int = 64
+    spp: int = 64
+    seed: int = 0
+    max_bounces: int = 1
+    filter_width: float = 1.5
+    film_transparent: bool = True
+    width: int | None = None
+    clamp_indirect: float = 0.0
+    adaptive_threshold: float = 0.0
+    adaptive_min_samples: int = 0
+    denoise: bool = False
+    device: str = "CPU"
+    threads: int = 0
+    albedo_aov: bool = False
+
+    def validate(self) -> None:
+        if int(self.resolution) <= 0 or (self.width is not None and int(self.width) <= 0):
+            raise ValueError(f"resolution must be a positive number of pixels, got {self.resolution}"
+                             + (f" x {self.width}" if self.width is not None else ""))
+        if int(self.spp) <= 0:
+            raise ValueError(f"spp must be positive, got {self.spp}")
+        if int(self.max_bounces) < 0:
+            raise ValueError(f"max_bounces must be >= 0, got {self.max_bounces}")
+        if not 0.01 <= float(self.filter_width) <= 10.0:
+            raise ValueError(f"filter_width must be in [0.01, 10] pixels (Cycles' range), got {self.filter_width}")
+        if self.device not in ("CPU", "GPU"):
+            raise ValueError(f"device must be 'CPU' or 'GPU', got {self.device!r}")
+        if float(self.adaptive_threshold) < 0 or int(self.adaptive_min_samples) < 0:
+            raise ValueError("adaptive_threshold and adaptive_min_samples must be >= 0")
+        if float(self.clamp_indirect) < 0:
+            raise ValueError(f"clamp_indirect must be >= 0 (0 = off), got {self.clamp_indirect}")
+
+
+def _split_kwargs(kwargs: dict) -> tuple[dict, dict]:
+    """Keyword arguments -> (PrincipledMaterial fields, RenderSettings fields); anything else is an error."""
+    mat_keys = {f.name for f in fields(PrincipledMaterial)}
+    set_keys = {f.name for f in fields(RenderSettings)}
+    unknown = sorted(set(kwargs) - mat_keys - set_keys)
+    if unknown:
+        raise TypeError(f"unknown argument(s) {unknown}; material: {sorted(mat_keys)}; settings: {sorted(set_keys)}")
+    return ({k: v for k, v in kwargs.items() if k in mat_keys}, {k: v for k, v in kwargs.items() if k in set_keys})
+
 # ----------------------------------------------------------------------------- scene handle
 
 @dataclass
@@ -91,9 +207,10 @@ class CyclesScene:
     env_node: object
     resolution: int
     albedo_aov: bool
-    tmpdir: str = field(default_factory=lambda: _scratch_dir())
+    tmpdir: str = field(default_factory=lambda: scratch_dir())
     render_seconds: float = 0.0  # wall time spent inside Cycles' render call (cumulative)
     renders: int = 0
+    settings: RenderSettings | None = None
 
     @property
     def bsdf(self):
@@ -207,9 +324,7 @@ def _make_mesh_object(verts, faces, uvs=None, face_uvs=None, smooth=True):
     return obj
 
 
-def _make_material(obj, *, base_color, texture, roughness, metallic, specular_ior_level, albedo_aov,
-                   subsurface_weight=0.0, subsurface_radius=(1.0, 0.2, 0.1), subsurface_scale=0.05,
-                   subsurface_method="RANDOM_WALK", has_uvs=False):
+def _make_material(obj, m: PrincipledMaterial, *, albedo_aov: bool, has_uvs: bool):
     bpy = _bpy()
     mat = bpy.data.materials.new("material")
     nodes, links = mat.node_tree.nodes, mat.node_tree.links
@@ -221,19 +336,19 @@ def _make_material(obj, *, base_color, texture, roughness, metallic, specular_io
     bsdf = nodes.new("ShaderNodeBsdfPrincipled")
     bsdf.name = "Principled BSDF"
     bsdf.distribution = "GGX"
-    bsdf.subsurface_method = subsurface_method
+    bsdf.subsurface_method = m.subsurface_method
     inp = bsdf.inputs
-    color = tuple(float(c) for c in _np(base_color, np.float64).reshape(-1))
+    color = tuple(float(c) for c in _np(m.base_color, np.float64).reshape(-1))
     if len(color) != 3:
         raise ValueError(f"base_color must be linear RGB (3 values), got {color}")
     inp["Base Color"].default_value = (*color, 1.0)
-    inp["Roughness"].default_value = float(roughness)
-    inp["Metallic"].default_value = float(metallic)
-    inp["Specular IOR Level"].default_value = float(specular_ior_level)
+    inp["Roughness"].default_value = float(m.roughness)
+    inp["Metallic"].default_value = float(m.metallic)
+    inp["Specular IOR Level"].default_value = float(m.specular_ior_level)
     inp["IOR"].default_value = 1.5
-    inp["Subsurface Weight"].default_value = float(subsurface_weight)
-    inp["Subsurface Radius"].default_value = tuple(float(r) for r in subsurface_radius)
-    inp["Subsurface Scale"].default_value = float(subsurface_scale)
+    inp["Subsurface Weight"].default_value = float(m.subsurface_weight)
+    inp["Subsurface Radius"].default_value = tuple(float(r) for r in m.subsurface_radius)
+    inp["Subsurface Scale"].default_value = float(m.subsurface_scale)
     inp["Coat Weight"].default_value = 0.0
     inp["Sheen Weight"].default_value = 0.0
     inp["Transmission Weight"].default_value = 0.0
@@ -241,12 +356,12 @@ def _make_material(obj, *, base_color, texture, roughness, metallic, specular_io
     inp["Alpha"].default_value = 1.0
     links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     colour_socket = None
-    if texture is not None:
+    if m.texture is not None:
         if not has_uvs:
             raise ValueError("a texture needs uvs (per-vertex, or with face_uvs)")
         tex = nodes.new("ShaderNodeTexImage")
         tex.name = "texture"
-        tex.image = _texture_image(texture)
+        tex.image = _texture_image(m.texture)
         tex.interpolation = "Linear"
         tex.extension = "REPEAT"
         links.new(tex.outputs["Color"], inp["Base Color"])
@@ -275,7 +390,9 @@ def _make_material(obj, *, base_color, texture, roughness, metallic, specular_io
     return mat
 
 
-def _make_world(envmap):
+def make_world(envmap):
+    """A world lit only by ``envmap`` (EXR path or (H, W, 3) linear array, top row first) through an
+    Environment Texture node with default mapping at strength 1; returns (world, environment node)."""
     bpy = _bpy()
     world = bpy.data.worlds.new("world")
     nodes, links = world.node_tree.nodes, world.node_tree.links
@@ -312,41 +429,54 @@ def _assign_envmap(env_node, envmap):
         bpy.data.images.remove(old)
 
 
-def _configure_render(scene, *, resolution, spp, seed, max_bounces, filter_width, device, threads,
-                      clamp_indirect, albedo_aov):
-    bpy = _bpy()
+def configure_render(scene, settings: RenderSettings) -> None:
+    """Apply ``settings`` to a bpy scene: Cycles on CPU (or GPU), fixed seed, Blackman-Harris filter, no
+    light tree / guiding / caustic tricks, Standard view transform (linear output), 32-bit multilayer EXR
+    output. Works on any scene (the one :func:`build_scene` makes, or one built by hand with bpy)."""
+    settings.validate()
+    st = settings
     r = scene.render
     r.engine = "CYCLES"
-    r.resolution_x = r.resolution_y = int(resolution)
+    r.resolution_x = r.resolution_y = int(st.resolution)
+    if st.width is not None:
+        r.resolution_x = int(st.width)
     r.resolution_percentage = 100
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
-    r.film_transparent = True
+    r.film_transparent = bool(st.film_transparent)
     r.use_persistent_data = True  # keep the BVH/images between the views of one scene
     r.use_compositing = False
     r.use_sequencer = False
-    r.threads_mode = "FIXED" if threads else "AUTO"
-    if threads:
-        r.threads = int(threads)
+    r.threads_mode = "FIXED" if st.threads else "AUTO"
+    if st.threads:
+        r.threads = int(st.threads)
     c = scene.cycles
-    c.device = device
-    c.samples = int(spp)
-    c.use_adaptive_sampling = False
-    c.use_denoising = False
+    c.device = st.device
+    c.samples = int(st.spp)
+    c.use_adaptive_sampling = float(st.adaptive_threshold) > 0
+    if c.use_adaptive_sampling:
+        c.adaptive_threshold = float(st.adaptive_threshold)
+        c.adaptive_min_samples = int(st.adaptive_min_samples)
+    c.use_denoising = bool(st.denoise)
+    if st.denoise:
+        c.denoiser = "OPENIMAGEDENOISE"
+        c.denoising_input_passes = "RGB_ALBEDO_NORMAL"
+        c.denoising_prefilter = "ACCURATE"
+        c.denoising_quality = "HIGH"
     c.use_light_tree = False
     c.use_guiding = False
-    c.seed = int(seed)
+    c.seed = int(st.seed)
     c.use_animated_seed = False
     c.pixel_filter_type = "BLACKMAN_HARRIS"
-    c.filter_width = float(filter_width)
-    c.max_bounces = int(max_bounces)
-    c.diffuse_bounces = int(max_bounces)
-    c.glossy_bounces = int(max_bounces)
-    c.transmission_bounces = int(max_bounces)
+    c.filter_width = float(st.filter_width)
+    c.max_bounces = int(st.max_bounces)
+    c.diffuse_bounces = int(st.max_bounces)
+    c.glossy_bounces = int(st.max_bounces)
+    c.transmission_bounces = int(st.max_bounces)
     c.volume_bounces = 0
     c.transparent_max_bounces = 8
     c.blur_glossy = 0.0
     c.sample_clamp_direct = 0.0
-    c.sample_clamp_indirect = float(clamp_indirect)
+    c.sample_clamp_indirect = float(st.clamp_indirect)
     c.use_fast_gi = False
     c.use_camera_cull = False
     c.use_distance_cull = False
@@ -365,7 +495,7 @@ def _configure_render(scene, *, resolution, spp, seed, max_bounces, filter_width
     im.file_format = "OPEN_EXR_MULTILAYER"
     im.color_depth = "32"
     im.exr_codec = "NONE"
-    if device == "GPU":
+    if st.device == "GPU":
         _enable_gpu()
 
 
@@ -388,44 +518,29 @@ def _enable_gpu():
 
 # ----------------------------------------------------------------------------- public API
 
-def build_scene(verts, faces, *, envmap, resolution, base_color=(0.8, 0.8, 0.8), texture=None, uvs=None,
-                face_uvs=None, roughness=0.5, metallic=0.0, specular_ior_level=0.5, spp=64, seed=0,
-                max_bounces=1, filter_width=1.5, albedo_aov=False, smooth=True, device="CPU", threads=0,
-                clamp_indirect=0.0, subsurface_weight=0.0, subsurface_radius=(1.0, 0.2, 0.1),
-                subsurface_scale=0.05, subsurface_method="RANDOM_WALK") -> CyclesScene:
+def build_scene(verts, faces, *, envmap, settings: RenderSettings | None = None,
+                material: PrincipledMaterial | None = None, uvs=None, face_uvs=None, smooth=True) -> CyclesScene:
     """Reset Blender and build the one scene: mesh + Principled material + environment + camera.
 
-    The camera is placed by :func:`set_camera` (until then it sits at the origin). Arguments are
-    those of :func:`render_scene`; ``threads`` = 0 lets Cycles use every core; ``clamp_indirect`` is
-    Cycles' indirect sample clamp (0 = unclamped, the unbiased truth); the ``subsurface_*`` arguments
-    drive the Principled BSDF's subsurface scattering (random walk; weight 0 = none).
+    verts (V, 3), faces (F, 3): Blender world coordinates (+Z up), numpy or torch; uvs (T, 2) with
+    face_uvs (F, 3) (per-corner, OBJ convention v up) or per-vertex uvs (V, 2); ``smooth`` shading
+    interpolates vertex normals. envmap: EXR path or (H, W, 3) linear array, top row first.
+    ``material`` defaults to ``PrincipledMaterial()``, ``settings`` to ``RenderSettings()``. The camera is
+    placed by :func:`set_camera` (until then it sits at the origin).
     """
     bpy = _bpy()
-    if int(resolution) <= 0:
-        raise ValueError(f"resolution must be a positive number of pixels, got {resolution}")
-    if int(spp) <= 0:
-        raise ValueError(f"spp must be positive, got {spp}")
-    if int(max_bounces) < 0:
-        raise ValueError(f"max_bounces must be >= 0, got {max_bounces}")
-    if not 0.01 <= float(filter_width) <= 10.0:
-        raise ValueError(f"filter_width must be in [0.01, 10] pixels (Cycles' range), got {filter_width}")
-    if device not in ("CPU", "GPU"):
-        raise ValueError(f"device must be 'CPU' or 'GPU', got {device!r}")
-    for name, val in (("roughness", roughness), ("metallic", metallic)):
-        if not 0.0 <= float(val) <= 1.0:
-            raise ValueError(f"{name} must be in [0, 1], got {val}")
+    settings = RenderSettings() if settings is None else settings
+    material = PrincipledMaterial() if material is None else material
+    if not isinstance(settings, RenderSettings) or not isinstance(material, PrincipledMaterial):
+        raise TypeError("build_scene takes settings=RenderSettings(...) and material=PrincipledMaterial(...)")
+    settings.validate()
+    material.validate()
     reset()
     scene = bpy.context.scene
-    _configure_render(scene, resolution=resolution, spp=spp, seed=seed, max_bounces=max_bounces,
-                      filter_width=filter_width, device=device, threads=threads,
-                      clamp_indirect=clamp_indirect, albedo_aov=albedo_aov)
+    configure_render(scene, settings)
     obj = _make_mesh_object(verts, faces, uvs, face_uvs, smooth)
-    mat = _make_material(obj, base_color=base_color, texture=texture, roughness=roughness, metallic=metallic,
-                         specular_ior_level=specular_ior_level, albedo_aov=albedo_aov,
-                         subsurface_weight=subsurface_weight, subsurface_radius=subsurface_radius,
-                         subsurface_scale=subsurface_scale, subsurface_method=subsurface_method,
-                         has_uvs=uvs is not None)
-    world, env = _make_world(envmap)
+    mat = _make_material(obj, material, albedo_aov=settings.albedo_aov, has_uvs=uvs is not None)
+    world, env = make_world(envmap)
     cam_data = bpy.data.cameras.new("camera")
     cam_data.type = "PERSP"
     cam_data.lens_unit = "FOV"
@@ -435,7 +550,8 @@ def build_scene(verts, faces, *, envmap, resolution, base_color=(0.8, 0.8, 0.8),
     cam = bpy.data.objects.new("camera", cam_data)
     scene.collection.objects.link(cam)
     scene.camera = cam
-    return CyclesScene(scene, obj, cam, mat, world, env, int(resolution), bool(albedo_aov))
+    return CyclesScene(scene, obj, cam, mat, world, env, int(settings.resolution), bool(settings.albedo_aov),
+                       settings=settings)
 
 
 def set_camera(cs: CyclesScene, world_to_camera, fov) -> None:
@@ -465,16 +581,33 @@ def set_seed(cs: CyclesScene, seed: int) -> None:
     cs.scene.cycles.seed = int(seed)
 
 
-def _render_to(cs: CyclesScene, path: Path) -> Path:
+def _render_file(scene, path: Path) -> Path:
+    """Render ``scene``'s active camera into the EXR ``path``; returns the path Blender wrote."""
     bpy = _bpy()
     path.parent.mkdir(parents=True, exist_ok=True)
-    cs.scene.render.filepath = str(path)
-    t0 = time.perf_counter()
-    bpy.ops.render.render(write_still=True, scene=cs.scene.name)
-    cs.render_seconds += time.perf_counter() - t0
-    cs.renders += 1
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True, scene=scene.name)
     if not path.is_file() and Path(str(path) + ".exr").is_file():  # Blender appends a missing extension
         path = Path(str(path) + ".exr")
+    return path
+
+
+def render_still(scene=None, name: str = "still") -> np.ndarray:
+    """Render the active camera of a bpy scene (default: the current one) set up by
+    :func:`configure_render`; returns its Combined RGBA (H, W, 4) float32, linear, top row first."""
+    scene = _bpy().context.scene if scene is None else scene
+    path = _render_file(scene, Path(scratch_dir()) / f"{name}.exr")
+    try:
+        return read_render_exr(path)
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _render_to(cs: CyclesScene, path: Path) -> Path:
+    t0 = time.perf_counter()
+    path = _render_file(cs.scene, path)
+    cs.render_seconds += time.perf_counter() - t0
+    cs.renders += 1
     return path
 
 
@@ -485,11 +618,11 @@ def _set_albedo_mode(cs: CyclesScene, on: bool) -> None:
     nodes["output"].is_active_output = not on
     cs.material.cycles.emission_sampling = "NONE" if on else "AUTO"
     c = cs.scene.cycles
-    keys = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces")
+    keys = ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces", "use_denoising")
     if on:
         cs._saved_bounces = {k: getattr(c, k) for k in keys}
         for k in keys:
-            setattr(c, k, 0)
+            setattr(c, k, 0 if k != "use_denoising" else False)  # the albedo is noise-free: never denoised
     else:
         for k, v in getattr(cs, "_saved_bounces", {}).items():
             setattr(c, k, v)
@@ -541,25 +674,22 @@ def read_render_exr(path) -> np.ndarray:
     return img
 
 
-def render_scene(verts, faces, *, world_to_camera, fov, resolution, envmap,
-                 base_color=(0.8, 0.8, 0.8), texture=None, uvs=None, face_uvs=None,
-                 roughness=0.5, metallic=0.0, specular_ior_level=0.5,
-                 spp=64, seed=0, max_bounces=1, filter_width=1.5, albedo_aov=False,
-                 smooth=True, device="CPU", **extra) -> dict:
-    """Render one object under an environment map with Cycles; see the module docstring.
+def render_scene(verts, faces, *, world_to_camera, fov, envmap, material: PrincipledMaterial | None = None,
+                 settings: RenderSettings | None = None, uvs=None, face_uvs=None, smooth=True, **params) -> dict:
+    """Render one object under an environment map with Cycles, in one call; see the module docstring.
 
-    verts (V, 3), faces (F, 3): Blender world coordinates (+Z up), numpy or torch.
-    uvs (T, 2) with face_uvs (F, 3) (per-corner, OBJ convention v up) or per-vertex uvs (V, 2).
-    texture: an sRGB 8-bit PNG path or an (H, W, 3) float array of sRGB values in [0, 1], top row
-    first; it replaces ``base_color`` (linear RGB). envmap: EXR path or (H, W, 3) linear array, top
-    row first. Returns {'rgba': (R, R, 4) float32 linear, top row first} plus 'albedo' (R, R, 3), the
-    linear base colour (premultiplied by coverage, 0 on the background; see :func:`render`), when
-    ``albedo_aov``.
-    ``extra`` goes to :func:`build_scene` (threads, clamp_indirect, subsurface_*).
+    Geometry, ``envmap``, ``material`` and ``settings`` are those of :func:`build_scene`; the camera those
+    of :func:`set_camera`. For convenience any field of :class:`PrincipledMaterial` (base_color, texture,
+    roughness, metallic, specular_ior_level, subsurface_*) or of :class:`RenderSettings` (resolution, spp,
+    seed, max_bounces, filter_width, albedo_aov, threads, ...) may be given as a keyword instead; it
+    overrides the record's value. Returns {'rgba': (R, R, 4) float32 linear, top row first} plus 'albedo'
+    (R, R, 3), the linear base colour (premultiplied by coverage, 0 on the background; see :func:`render`),
+    when ``albedo_aov``.
     """
-    cs = build_scene(verts, faces, envmap=envmap, resolution=resolution, base_color=base_color, texture=texture,
-                     uvs=uvs, face_uvs=face_uvs, roughness=roughness, metallic=metallic,
-                     specular_ior_level=specular_ior_level, spp=spp, seed=seed, max_bounces=max_bounces,
-                     filter_width=filter_width, albedo_aov=albedo_aov, smooth=smooth, device=device, **extra)
+    mat_kw, set_kw = _split_kwargs(params)
+    material = replace(material or PrincipledMaterial(), **mat_kw)
+    settings = replace(settings or RenderSettings(), **set_kw)
+    cs = build_scene(verts, faces, envmap=envmap, settings=settings, material=material, uvs=uvs,
+                     face_uvs=face_uvs, smooth=smooth)
     set_camera(cs, world_to_camera, fov)
     return render(cs)

@@ -20,19 +20,15 @@ from .textures import Noise3
 PANO_ROTATION = (math.pi / 2, 0.0, -math.pi / 2)
 
 
-def _capture(height: int, width: int, spp: int, seed: int, max_bounces: int = 0, threads: int = 0,
-             denoise: bool = False) -> np.ndarray:
+def capture_world(height: int, width: int, spp: int, seed: int, max_bounces: int = 0, threads: int = 0,
+                  denoise: bool = False) -> np.ndarray:
     """Render what the current world/scene looks like from the origin, as an (H, W, 3) equirect map."""
     import bpy
 
     sc = bpy.context.scene
-    C._configure_render(sc, resolution=height, spp=spp, seed=seed, max_bounces=max_bounces, filter_width=1.0,
-                        device="CPU", threads=threads, clamp_indirect=0.0, albedo_aov=False)
-    sc.render.resolution_x, sc.render.resolution_y = width, height
-    sc.render.film_transparent = False
-    if denoise:
-        sc.cycles.use_denoising = True
-        sc.cycles.denoiser = "OPENIMAGEDENOISE"
+    C.configure_render(sc, C.RenderSettings(resolution=height, width=width, spp=spp, seed=seed,
+                                            max_bounces=max_bounces, filter_width=1.0, film_transparent=False,
+                                            denoise=denoise, threads=threads))
     cam = bpy.data.cameras.new("pano")
     cam.type = "PANO"
     cam.panorama_type = "EQUIRECTANGULAR"
@@ -42,14 +38,7 @@ def _capture(height: int, width: int, spp: int, seed: int, max_bounces: int = 0,
     obj.rotation_euler = PANO_ROTATION
     sc.collection.objects.link(obj)
     sc.camera = obj
-    path = C.Path(C._scratch_dir()) / "envmap.exr"
-    bpy.context.scene.render.filepath = str(path)
-    bpy.ops.render.render(write_still=True, scene=sc.name)
-    try:
-        img = C.read_render_exr(path)[..., :3]
-    finally:
-        path.unlink(missing_ok=True)
-    return np.ascontiguousarray(img)
+    return np.ascontiguousarray(C.render_still(sc, "envmap")[..., :3])
 
 
 def _directions(h, w):
@@ -83,7 +72,7 @@ def outdoor(rng: np.random.Generator, height: int = 64, width: int = 128, spp: i
     sky.ozone_density = rng.uniform(0.5, 2.0)
     nt.links.new(sky.outputs["Color"], bg.inputs["Color"])
     nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
-    env = _capture(height, width, spp, int(rng.integers(1 << 30)), threads=threads).astype(np.float64)
+    env = capture_world(height, width, spp, int(rng.integers(1 << 30)), threads=threads).astype(np.float64)
     d = _directions(height, width)
     up = d[..., 2]
     # Exposure: typical sky radiance (median of the upper hemisphere) to about 1.
@@ -188,7 +177,8 @@ def indoor(rng: np.random.Generator, height: int = 64, width: int = 128, spp: in
         bpy.ops.mesh.primitive_uv_sphere_add(radius=r, location=pos.tolist(), segments=16, ring_count=8)
         bpy.context.active_object.data.materials.append(material("lamp", (0, 0, 0), warm, s))
         params["lamps"].append(dict(center=pos.tolist(), radius=float(r), strength=float(s)))
-    env = _capture(height, width, spp, int(rng.integers(1 << 30)), max_bounces=3, threads=threads, denoise=True)
+    env = capture_world(height, width, spp, int(rng.integers(1 << 30)), max_bounces=3, threads=threads,
+                        denoise=True)
     level = np.median(env.mean(-1))
     env = env * (rng.uniform(0.4, 1.0) / max(level, 1e-6))
     return np.ascontiguousarray(env, np.float32), params

@@ -1,10 +1,10 @@
 """Dataset generation: objects x environment maps x views, rendered by Cycles in worker processes.
 
-On-disk format (one folder per dataset)::
+On-disk format (one folder per dataset; every path comes from :class:`datagen.layout.DatasetLayout`)::
 
     manifest.json                      generator version, config, seeds, splits, counts, file layout
     envmaps/env_0007.exr               linear HDR equirect map (H, 2H, RGB), top row first
-    envmaps/env_0007.png               tone-mapped preview;  env_0007.json: kind, parameters (done marker)
+    envmaps/env_0007.png               tone-mapped preview;  env_0007.json: kind, parameters or source file (done marker)
     objects/obj_0003/mesh.npz          verts (V,3) f32, faces (F,3) i64, uvs (T,2) f32 (v up), face_uvs (F,3) i64
     objects/obj_0003/mesh.obj          the same mesh as OBJ (v/vt faces) + mesh.mtl -> texture.png
     objects/obj_0003/texture.png       albedo, sRGB 8-bit, top row first
@@ -20,29 +20,36 @@ On-disk format (one folder per dataset)::
 
 Every file is written atomically (temp + rename) and a folder counts as finished only once its json
 marker exists, so a killed run loses at most the samples in flight and a rerun resumes.
+
+Environment maps are procedural (outdoor skies, indoor rooms: :mod:`datagen.envmaps`) unless
+``envmaps_dir`` names a folder of your own HDRIs (:mod:`datagen.envmap_files`): then those files are
+maps 0..F-1 (sorted by name) and ``procedural_envmaps`` procedural maps follow; each group is split
+4:1 into train/test by the seed, and the manifest's ``envmap_sources`` records each file's name,
+sha256 and original resolution.
 """
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing as mp
 import os
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from dibrpp.io import DataError, atomic_path
 
+from .layout import DEFAULT_CAMERA, DatasetLayout
+
 GENERATOR_VERSION = "1.1.0"
 DATASETS = ("metallic", "glossy", "diffuse")
-CAMERA_DISTANCE = 60.0
-CAMERA_ELEVATION_DEG = 27.0
-FOV = 2 * math.atan(18.0 / 50.0)  # Blender's default camera (50 mm lens, 36 mm sensor): 39.6 deg
+CAMERA_DISTANCE = DEFAULT_CAMERA.distance  # 60
+CAMERA_ELEVATION_DEG = DEFAULT_CAMERA.elevation_deg  # 27
+FOV = DEFAULT_CAMERA.fov  # Blender's default camera (50 mm lens, 36 mm sensor): 39.6 deg
 _DATASET_CODE = {"metallic": 1, "glossy": 2, "diffuse": 3}
 
 PRESETS = {
@@ -72,6 +79,14 @@ class Config:
     grid: int = 64
     max_bounces: int = 2
     preset: str = "default"
+    # Optional settings: left out of the manifest while unset, so older datasets keep matching their config.
+    envmaps_dir: str | None = None  # a folder of your own HDRIs: maps 0..F-1
+    procedural_envmaps: int | None = None  # with envmaps_dir: how many procedural maps follow the files
+    denoise: bool | None = None  # OpenImageDenoise on the shaded renders (albedo + normal guides)
+
+    @property
+    def num_file_envmaps(self) -> int:
+        return self.num_envmaps - int(self.procedural_envmaps or 0) if self.envmaps_dir else 0
 
     def validate(self) -> None:
         if self.dataset not in DATASETS:
@@ -84,13 +99,37 @@ class Config:
             raise ValueError(f"--envs-per-object ({self.envs_per_object}) cannot exceed --num-envmaps ({self.num_envmaps})")
         if self.max_bounces < 0:
             raise ValueError("--max-bounces must be >= 0")
+        if self.procedural_envmaps is not None:
+            if not self.envmaps_dir:
+                raise ValueError("--procedural-envmaps adds procedural maps to those of --envmaps DIR; without "
+                                 "--envmaps every map is procedural (set their number with --num-envmaps)")
+            if int(self.procedural_envmaps) < 0:
+                raise ValueError(f"--procedural-envmaps must be >= 0, got {self.procedural_envmaps}")
+        if self.envmaps_dir and self.num_file_envmaps <= 0:
+            raise ValueError(f"--envmaps {self.envmaps_dir}: no env map files counted")
 
     @property
     def shape_kind(self) -> str:
         return "head" if self.dataset == "diffuse" else "car"
 
 
-def make_config(dataset: str, preset: str = "default", **overrides) -> Config:
+_OPTIONAL = ("envmaps_dir", "procedural_envmaps", "denoise")
+
+
+def config_dict(cfg: Config) -> dict:
+    """The config as the manifest stores it: optional settings only when set."""
+    d = asdict(cfg)
+    for k in _OPTIONAL:
+        if d.get(k) in (None, False):
+            d.pop(k, None)
+    return d
+
+
+def make_config(dataset: str, preset: str = "default", envmaps=None, procedural_envmaps: int | None = None,
+                **overrides) -> Config:
+    """The preset's settings with ``overrides``. ``envmaps``: a folder of your own HDRIs (all of its .exr /
+    .hdr files, sorted), plus ``procedural_envmaps`` procedural maps (default 0); the number of env maps is
+    then counted, not set."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if dataset not in DATASETS:
@@ -99,6 +138,16 @@ def make_config(dataset: str, preset: str = "default", **overrides) -> Config:
     values.update({k: v for k, v in overrides.items() if v is not None})
     if values.get("views") is None:
         values["views"] = 12 if dataset == "diffuse" else 24
+    if envmaps is not None:
+        from .envmap_files import list_envmap_files
+
+        if overrides.get("num_envmaps") is not None:
+            raise ValueError("--num-envmaps counts procedural maps; with --envmaps DIR every file is used, "
+                             "add procedural ones with --procedural-envmaps N")
+        procedural_envmaps = int(procedural_envmaps or 0)
+        values["num_envmaps"] = len(list_envmap_files(envmaps)) + procedural_envmaps
+        values["envmaps_dir"] = str(envmaps)
+    values["procedural_envmaps"] = procedural_envmaps
     cfg = Config(dataset=dataset, preset=preset, **values)
     cfg.validate()
     return cfg
@@ -128,11 +177,23 @@ def _split(n: int, rng: np.random.Generator) -> tuple[list[int], list[int]]:
 
 
 def plan(cfg: Config) -> dict:
-    """Splits (4:1 for objects and env maps), env kinds, material per object, env maps per object."""
+    """Splits (4:1 for objects and env maps), env kinds, material per object, env maps per object.
+
+    Env maps from files (indices 0..F-1) and procedural ones (F..) are split 4:1 each, so that both
+    splits hold both kinds.
+    """
     rng = np.random.default_rng(seed_for(cfg, _SPLIT))
     obj_train, obj_test = _split(cfg.num_objects, rng)
-    env_train, env_test = _split(cfg.num_envmaps, rng)
-    env_kind = ["outdoor" if np.random.default_rng(seed_for(cfg, _ENV, i)).random() < 0.6 else "indoor"
+    nf = cfg.num_file_envmaps
+    if nf:
+        f_train, f_test = _split(nf, rng)
+        p_train, p_test = _split(cfg.num_envmaps - nf, rng)
+        env_train = f_train + [nf + i for i in p_train]
+        env_test = f_test + [nf + i for i in p_test]
+    else:
+        env_train, env_test = _split(cfg.num_envmaps, rng)
+    env_kind = ["file" if i < nf else
+                "outdoor" if np.random.default_rng(seed_for(cfg, _ENV, i)).random() < 0.6 else "indoor"
                 for i in range(cfg.num_envmaps)]
     objects = []
     unseen = True  # test objects are lit only by test env maps
@@ -165,13 +226,8 @@ def material_for(cfg: Config, rng: np.random.Generator) -> dict:
                 subsurface_method="RANDOM_WALK")
 
 
-def sample_name(obj: int, env: int) -> str:
-    return f"obj_{obj:04d}_env_{env:04d}"
-
-
-def view_files(v: int) -> list[str]:
-    return [f"view_{v:02d}.exr", f"view_{v:02d}.png", f"view_{v:02d}_mask.png", f"view_{v:02d}_albedo.exr",
-            f"view_{v:02d}.json"]
+sample_name = DatasetLayout.sample_name
+view_files = DatasetLayout.view_files
 
 
 def _write_json(path: Path, data) -> None:
@@ -209,18 +265,38 @@ def task_envmap(out: str, cfg: Config, i: int, kind: str) -> dict:
 
     from . import envmaps
 
-    out = Path(out)
-    marker = out / "envmaps" / f"env_{i:04d}.json"
+    layout = DatasetLayout(out)
+    marker = layout.envmap_json(i)
     if marker.exists():
         return dict(kind="envmap", index=i, skipped=True)
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed_for(cfg, _ENV, i, 1))
     h = cfg.envmap_height
     env, params = envmaps.make_envmap(kind, rng, h, 2 * h, spp=32, threads=_THREADS)
-    write_exr(out / "envmaps" / f"env_{i:04d}.exr", env)
-    write_png(out / "envmaps" / f"env_{i:04d}.png", env / (1 + env))
+    write_exr(layout.envmap(i), env)
+    write_png(layout.envmap_png(i), env / (1 + env))
     _write_json(marker, dict(index=i, kind=kind, params=params, shape=list(env.shape),
                              seed=seed_for(cfg, _ENV, i, 1), seconds=time.perf_counter() - t0))
+    return dict(kind="envmap", index=i, skipped=False, seconds=time.perf_counter() - t0)
+
+
+def task_envmap_file(out: str, cfg: Config, i: int, source: dict) -> dict:
+    """Env map ``i`` from one of your files: resampled to the dataset's size (area average)."""
+    from dibrpp.io import write_exr, write_png
+
+    from .envmap_files import load_envmap_source
+
+    layout = DatasetLayout(out)
+    marker = layout.envmap_json(i)
+    if marker.exists():
+        return dict(kind="envmap", index=i, skipped=True)
+    t0 = time.perf_counter()
+    env = load_envmap_source(cfg.envmaps_dir, source, cfg.envmap_height)
+    write_exr(layout.envmap(i), env)
+    write_png(layout.envmap_png(i), env / (1 + env))
+    _write_json(marker, dict(index=i, kind="file", source=source, shape=list(env.shape),
+                             resampling="area average over solid angle (energy preserving)",
+                             seconds=time.perf_counter() - t0))
     return dict(kind="envmap", index=i, skipped=False, seconds=time.perf_counter() - t0)
 
 
@@ -229,26 +305,26 @@ def task_object(out: str, cfg: Config, i: int, info: dict) -> dict:
 
     from . import shapes, textures
 
-    out = Path(out)
-    d = out / "objects" / f"obj_{i:04d}"
-    if (d / "object.json").exists():
+    layout = DatasetLayout(out)
+    if layout.object_json(i).exists():
         return dict(kind="object", index=i, skipped=True)
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed_for(cfg, _OBJ, i))
     obj = shapes.make_shape(cfg.shape_kind, rng, grid=cfg.grid)
     uvs, face_uvs = shapes.unwrap(obj["verts"], obj["faces"], resolution=cfg.texture_size)
     tex, style = textures.bake_texture(obj, uvs, face_uvs, cfg.texture_size, rng, tone=info["tone"])
-    d.mkdir(parents=True, exist_ok=True)
-    with atomic_path(d / "mesh.npz") as tmp:
+    layout.object_dir(i).mkdir(parents=True, exist_ok=True)
+    with atomic_path(layout.mesh_npz(i)) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, verts=obj["verts"].astype(np.float32), faces=obj["faces"], uvs=uvs, face_uvs=face_uvs)
-    write_png(d / "texture.png", tex, srgb=False)  # values are sRGB already
-    write_textured_obj(d / "mesh.obj", obj["verts"], obj["faces"], uvs, face_uvs, "texture.png")
+    write_png(layout.texture(i), tex, srgb=False)  # values are sRGB already
+    # mesh.obj + mesh.mtl, whose map_Kd names the texture relative to the OBJ
+    write_textured_obj(layout.mesh_obj(i), obj["verts"], obj["faces"], uvs, face_uvs, layout.texture(i).name)
     meta = dict(index=i, kind=cfg.shape_kind, split=info["split"], material=info["material"], envmaps=info["envmaps"],
                 shape_params=obj["shape"].params, paint=style, normalisation=obj["normalisation"],
                 num_verts=len(obj["verts"]), num_faces=len(obj["faces"]), texture_size=cfg.texture_size,
                 seed=seed_for(cfg, _OBJ, i), seconds=time.perf_counter() - t0)
-    _write_json(d / "object.json", meta)
+    _write_json(layout.object_json(i), meta)
     return dict(kind="object", index=i, skipped=False, seconds=time.perf_counter() - t0)
 
 
@@ -260,24 +336,23 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
 
     from . import cycles as C
 
-    out = Path(out)
-    d = out / "samples" / sample_name(i, env)
-    if (d / "sample.json").exists():
+    layout = DatasetLayout(out)
+    d = layout.sample_dir(i, env)
+    if layout.sample_json(i, env).exists():
         return dict(kind="sample", obj=i, env=env, skipped=True, views=cfg.views)
     t0 = time.perf_counter()
-    od = out / "objects" / f"obj_{i:04d}"
-    with np.load(od / "mesh.npz") as m:
+    with np.load(layout.mesh_npz(i)) as m:
         verts, faces, uvs, face_uvs = m["verts"], m["faces"], m["uvs"], m["face_uvs"]
-    mat = dict(info["material"])
-    extra = {k: mat.pop(k) for k in list(mat) if k.startswith("subsurface_")}
-    cs = C.build_scene(verts, faces, envmap=out / "envmaps" / f"env_{env:04d}.exr", resolution=cfg.resolution,
-                       texture=od / "texture.png", uvs=uvs, face_uvs=face_uvs, spp=cfg.spp,
-                       max_bounces=cfg.max_bounces, albedo_aov=True, threads=_THREADS, **mat, **extra)
+    material = C.PrincipledMaterial.from_dict(info["material"], texture=layout.texture(i))
+    settings = C.RenderSettings(resolution=cfg.resolution, spp=cfg.spp, max_bounces=cfg.max_bounces,
+                                denoise=bool(cfg.denoise), albedo_aov=True, threads=_THREADS)
+    cs = C.build_scene(verts, faces, envmap=layout.envmap(env), settings=settings, material=material, uvs=uvs,
+                       face_uvs=face_uvs)
     build_s = time.perf_counter() - t0
     d.mkdir(parents=True, exist_ok=True)
     rendered = 0
     for v, az in enumerate(azimuths(cfg)):
-        names = view_files(v)
+        names = layout.view_files(v)
         if all((d / n).exists() for n in names):
             continue  # finished before a crash
         w2c = orbit_world_to_camera(torch.tensor(CAMERA_DISTANCE, dtype=torch.float64), CAMERA_ELEVATION_DEG, az)
@@ -293,9 +368,9 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
                                        azimuth_deg=az, elevation_deg=CAMERA_ELEVATION_DEG, distance=CAMERA_DISTANCE,
                                        convention="dibrpp.conventions: world +Z up, camera looks down -Z, +Y up"))
         rendered += 1
-    files = {n: (d / n).stat().st_size for v in range(cfg.views) for n in view_files(v)}
+    files = {n: (d / n).stat().st_size for v in range(cfg.views) for n in layout.view_files(v)}
     total = time.perf_counter() - t0
-    _write_json(d / "sample.json", dict(object=i, envmap=env, split=info["split"], material=info["material"],
+    _write_json(layout.sample_json(i, env), dict(object=i, envmap=env, split=info["split"], material=info["material"],
                                         views=cfg.views, azimuths_deg=azimuths(cfg), files=files,
                                         render_seeds=[seed_for(cfg, _RENDER, i, env, v) % (1 << 31)
                                                       for v in range(cfg.views)],
@@ -332,7 +407,7 @@ def _completed(tasks, workers: int, threads: int, recycle: int):
 # ----------------------------------------------------------------------------- verification
 
 def verify_sample(d: Path, cfg: Config) -> None:
-    meta = _read_json(d / "sample.json")
+    meta = _read_json(d / "sample.json")  # d: a sample folder (DatasetLayout.sample_dir)
     for name, size in meta.get("files", {}).items():
         p = d / name
         if not p.is_file() or p.stat().st_size != size:
@@ -343,15 +418,22 @@ def verify_sample(d: Path, cfg: Config) -> None:
 
 
 def _check_manifest(out: Path, manifest: dict) -> None:
-    path = out / "manifest.json"
+    path = DatasetLayout(out).manifest
     if not path.exists():
         return
     old = _read_json(path)
     if old.get("config") != manifest["config"] or old.get("generator_version") != manifest["generator_version"]:
-        diff = {k: (old.get("config", {}).get(k), v) for k, v in manifest["config"].items()
-                if old.get("config", {}).get(k) != v}
+        keys = list(manifest["config"]) + [k for k in old.get("config", {}) if k not in manifest["config"]]
+        diff = {k: (old.get("config", {}).get(k), manifest["config"].get(k)) for k in keys
+                if old.get("config", {}).get(k) != manifest["config"].get(k)}
         raise DataError(f"{out} holds a dataset generated with different settings {diff or '(generator version)'}; "
                         "use another --out or the same settings")
+    if old.get("envmap_sources") != manifest.get("envmap_sources"):
+        was = {s["file"]: s["sha256"][:12] for s in old.get("envmap_sources") or []}
+        now = {s["file"]: s["sha256"][:12] for s in manifest.get("envmap_sources") or []}
+        changed = sorted(set(was.items()) ^ set(now.items()))
+        raise DataError(f"{out} was generated from other env map files (changed: {changed[:4]}); put the "
+                        "original files back in the --envmaps folder or generate into another --out")
 
 
 def _check_writable(out: Path) -> None:
@@ -383,9 +465,24 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
 
     cfg.validate()
     out = Path(out)
+    layout = DatasetLayout(out)
+    sources = []
+    if cfg.envmaps_dir:  # read and check every file before anything renders
+        from .envmap_files import scan_envmap_folder
+
+        sources = scan_envmap_folder(cfg.envmaps_dir)
+        if len(sources) != cfg.num_file_envmaps:
+            raise DataError(f"--envmaps {cfg.envmaps_dir}: holds {len(sources)} maps, the config counted "
+                            f"{cfg.num_file_envmaps}; rerun the command")
     _check_writable(out)
     p = plan(cfg)
-    manifest = dict(generator_version=GENERATOR_VERSION, dataset=cfg.dataset, config=asdict(cfg),
+    camera = replace(DEFAULT_CAMERA, azimuths_deg=tuple(azimuths(cfg)), resolution=cfg.resolution)
+    renderer = dict(engine="Cycles (bpy)", spp=cfg.spp, max_bounces=cfg.max_bounces,
+                    filter="Blackman-Harris 1.5 px", denoising=bool(cfg.denoise), film_transparent=True,
+                    bsdf="Principled, GGX")
+    if cfg.denoise:
+        renderer["denoiser"] = "OpenImageDenoise, albedo + normal guides (shaded renders only)"
+    manifest = dict(generator_version=GENERATOR_VERSION, dataset=cfg.dataset, config=config_dict(cfg),
                     seeds=dict(run=cfg.seed, scheme="numpy SeedSequence([seed, dataset, purpose, index...])"),
                     splits=p["splits"], env_kind=p["env_kind"],
                     objects=[dict(index=o["index"], split=o["split"], envmaps=o["envmaps"], material=o["material"])
@@ -396,14 +493,12 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
                                 test_objects=len(p["splits"]["objects"]["test"]),
                                 train_envmaps=len(p["splits"]["envmaps"]["train"]),
                                 test_envmaps=len(p["splits"]["envmaps"]["test"])),
-                    camera=dict(distance=CAMERA_DISTANCE, elevation_deg=CAMERA_ELEVATION_DEG, fov=FOV,
-                                azimuths_deg=azimuths(cfg), resolution=cfg.resolution),
-                    renderer=dict(engine="Cycles (bpy)", spp=cfg.spp, max_bounces=cfg.max_bounces,
-                                  filter="Blackman-Harris 1.5 px", denoising=False, film_transparent=True,
-                                  bsdf="Principled, GGX"),
+                    camera=camera.to_manifest(), renderer=renderer,
                     normalisation="longest bounding-box side spans [-18, 18], centred")
+    if sources:
+        manifest["envmap_sources"] = [dict(index=i, **src) for i, src in enumerate(sources)]
     _check_manifest(out, manifest)
-    _write_json(out / "manifest.json", manifest)
+    _write_json(layout.manifest, manifest)
 
     si, sn = shard
     my_objects = [o for o in p["objects"] if o["index"] % sn == si]
@@ -411,13 +506,13 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
     # Verify what is already there before spending time.
     for o in my_objects:
         for e in o["envmaps"]:
-            d = out / "samples" / sample_name(o["index"], e)
-            if (d / "sample.json").exists():
-                verify_sample(d, cfg)
+            if layout.sample_json(o["index"], e).exists():
+                verify_sample(layout.sample_dir(o["index"], e), cfg)
     threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     t_start = time.perf_counter()
     stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
-    assets = [(task_envmap, (str(out), cfg, e, p["env_kind"][e])) for e in my_envs]
+    assets = [(task_envmap_file, (str(out), cfg, e, sources[e])) if e < cfg.num_file_envmaps else
+              (task_envmap, (str(out), cfg, e, p["env_kind"][e])) for e in my_envs]
     assets += [(task_object, (str(out), cfg, o["index"], o)) for o in my_objects]
     bar = tqdm(total=len(assets), desc=f"{cfg.dataset}: assets", unit="asset", disable=not progress)
     for r in _completed(assets, workers, threads, recycle):
@@ -439,9 +534,8 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
     stats.update(wall_s=wall, workers=workers, threads_per_worker=threads, shard=f"{si}/{sn}",
                  render_overhead=(stats["sample_s"] - stats["cycles_s"]) / stats["cycles_s"] if stats["cycles_s"] else None,
                  seconds_per_view=stats["sample_s"] / stats["rendered_views"] if stats["rendered_views"] else None)
-    _write_json(out / "timing" / f"shard_{si}_of_{sn}.json", stats)
-    if preview and all((out / "samples" / sample_name(o["index"], e) / "sample.json").exists()
-                       for o in p["objects"] for e in o["envmaps"]):
+    _write_json(layout.timing(si, sn), stats)
+    if preview and all(layout.sample_json(o["index"], e).exists() for o in p["objects"] for e in o["envmaps"]):
         from .preview import contact_sheet
 
         contact_sheet(out)

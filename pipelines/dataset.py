@@ -10,7 +10,9 @@ Each item is one view of one (object, env map) sample plus ``views_per_item - 1`
 same sample (for the multi-view consistency loss), chosen deterministically from ``seed`` and the
 index. Ground-truth meshes are per object (``ds.mesh(obj)`` -> dibrpp Meshes with UVs,
 ``ds.texture(obj)``). Everything read is validated (missing views, shapes, NaN/Inf) and decoded
-tensors are cached in memory.
+tensors are cached in memory. Paths come from :class:`datagen.layout.DatasetLayout` (``ds.layout``),
+which imports neither bpy nor torch; ``ds.camera_setup`` is the orbit camera of the manifest
+(distance, elevation, fov), for code that must place cameras like the data's.
 """
 from __future__ import annotations
 
@@ -21,22 +23,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.layout import CameraSetup, DatasetLayout
 from dibrpp.camera import Cameras
 from dibrpp.io import DataError, read_exr, read_png
 from dibrpp.mesh import Meshes
-
-VIEW_FILES = ("view_{v:02d}.exr", "view_{v:02d}_albedo.exr", "view_{v:02d}.json")
 
 
 class MultiViewDataset(torch.utils.data.Dataset):
     def __init__(self, root, split: str = "train", views_per_item: int = 2, image: str = "linear",
                  cache_items: int = 4096, seed: int = 0, with_envmap: bool = True):
         self.root = Path(root)
+        self.layout = DatasetLayout(self.root)
         if split not in ("train", "test", "all"):
             raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
         if image not in ("linear", "srgb"):
             raise ValueError(f"image must be 'linear' (EXR) or 'srgb' (PNG), got {image!r}")
-        mpath = self.root / "manifest.json"
+        mpath = self.layout.manifest
         if not mpath.is_file():
             raise DataError(f"{self.root}: no manifest.json; is this a dataset folder written by `python -m datagen`?")
         try:
@@ -59,23 +61,33 @@ class MultiViewDataset(torch.utils.data.Dataset):
         self._cache: OrderedDict = OrderedDict()
         self._cache_items = cache_items
 
+    @property
+    def camera_setup(self) -> CameraSetup:
+        """The data's orbit camera from the manifest: distance, elevation_deg, fov (radians; fov_deg),
+        azimuths_deg, resolution."""
+        try:
+            return CameraSetup.from_manifest(self.manifest)
+        except (KeyError, TypeError, ValueError) as e:
+            raise DataError(f"{self.layout.manifest}: no readable camera set-up ({e!r}); regenerate the dataset "
+                            "with `python -m datagen`") from e
+
     # ------------------------------------------------------------------ validation
     def sample_dir(self, obj: int, env: int) -> Path:
-        return self.root / "samples" / f"obj_{obj:04d}_env_{env:04d}"
+        return self.layout.sample_dir(obj, env)
 
     def _validate_files(self) -> None:
         missing = []
+        lay = self.layout
         for obj, env in self.samples:
             d = self.sample_dir(obj, env)
-            if not (d / "sample.json").is_file():
+            if not lay.sample_json(obj, env).is_file():
                 missing.append(f"{d.name} (unfinished: no sample.json)")
                 continue
             for v in range(self.num_views):
-                for pat in VIEW_FILES:
-                    if not (d / pat.format(v=v)).is_file():
-                        missing.append(f"{d.name}/{pat.format(v=v)}")
-            for p in (self.root / "objects" / f"obj_{obj:04d}" / "mesh.npz",
-                      self.root / "envmaps" / f"env_{env:04d}.exr"):
+                for p in (lay.view_image(obj, env, v), lay.view_albedo(obj, env, v), lay.view_camera(obj, env, v)):
+                    if not p.is_file():
+                        missing.append(f"{d.name}/{p.name}")
+            for p in (lay.mesh_npz(obj), lay.envmap(env)):
                 if not p.is_file():
                     missing.append(str(p.relative_to(self.root)))
         if missing:
@@ -110,7 +122,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
 
     def camera(self, obj: int, env: int, view: int) -> tuple[torch.Tensor, float]:
         def load():
-            p = self.sample_dir(obj, env) / f"view_{view:02d}.json"
+            p = self.layout.view_camera(obj, env, view)
             try:
                 c = json.loads(p.read_text())
                 m = torch.tensor(c["world_to_camera"], dtype=torch.float32)
@@ -124,12 +136,12 @@ class MultiViewDataset(torch.utils.data.Dataset):
 
     def envmap(self, env: int) -> torch.Tensor:
         return self._cached(("env", env), lambda: torch.from_numpy(
-            read_exr(self.root / "envmaps" / f"env_{env:04d}.exr", "RGB")))
+            read_exr(self.layout.envmap(env), "RGB")))
 
     def mesh(self, obj: int) -> Meshes:
         """Ground-truth mesh (B = 1) with per-corner UVs (v up)."""
         def load():
-            p = self.root / "objects" / f"obj_{obj:04d}" / "mesh.npz"
+            p = self.layout.mesh_npz(obj)
             try:
                 with np.load(p) as m:
                     arrays = {k: m[k] for k in ("verts", "faces", "uvs", "face_uvs")}
@@ -145,7 +157,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
     def texture(self, obj: int) -> torch.Tensor:
         """Ground-truth albedo texture (S, S, 3), linear (decoded from the sRGB PNG), top row first."""
         return self._cached(("tex", obj), lambda: torch.from_numpy(
-            read_png(self.root / "objects" / f"obj_{obj:04d}" / "texture.png", linear=True)[..., :3]))
+            read_png(self.layout.texture(obj), linear=True)[..., :3]))
 
     # ------------------------------------------------------------------ Dataset protocol
     def __len__(self) -> int:
@@ -161,16 +173,11 @@ class MultiViewDataset(torch.utils.data.Dataset):
         if not 0 <= idx < len(self):
             raise IndexError(idx)
         obj, env = self.samples[idx // self.num_views]
-        d = self.sample_dir(obj, env)
         views = self.views_for(idx)
         imgs, albs, w2cs, fovs = [], [], [], []
         for v in views:
-            if self.image == "linear":
-                img = self._image(d / f"view_{v:02d}.exr", "RGBA")
-            else:
-                img = self._image(d / f"view_{v:02d}.png", "RGBA")
-            imgs.append(img)
-            albs.append(self._image(d / f"view_{v:02d}_albedo.exr", "RGB"))
+            imgs.append(self._image(self.layout.view_image(obj, env, v, srgb=self.image == "srgb"), "RGBA"))
+            albs.append(self._image(self.layout.view_albedo(obj, env, v), "RGB"))
             m, fov = self.camera(obj, env, v)
             w2cs.append(m)
             fovs.append(fov)

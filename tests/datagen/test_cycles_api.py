@@ -168,7 +168,8 @@ def test_scene_reuse_across_cameras_and_determinism():
     v, f = sphere(5.0, subdivisions=3)
     kw = dict(envmap=_reflection_env(16, 32), resolution=24, roughness=0.4, spp=4, seed=3)
     cams = [w2c(0), w2c(90)]
-    cs = cycles.build_scene(v, f, **kw)
+    cs = cycles.build_scene(v, f, envmap=kw["envmap"], material=cycles.PrincipledMaterial(roughness=0.4),
+                            settings=cycles.RenderSettings(resolution=24, spp=4, seed=3))
     views = []
     for m in cams:
         cycles.set_camera(cs, m, FOV)
@@ -180,11 +181,17 @@ def test_scene_reuse_across_cameras_and_determinism():
     np.testing.assert_array_equal(again, views[1])
     other_seed = cycles.render_scene(v, f, world_to_camera=cams[1], fov=FOV, **{**kw, "seed": 4})["rgba"]
     assert not np.array_equal(other_seed, views[1])
+    # Records and keywords are the same call (keywords override the records' fields).
+    records = cycles.render_scene(v, f, world_to_camera=cams[1], fov=FOV, envmap=kw["envmap"],
+                                  material=cycles.PrincipledMaterial(roughness=0.9),
+                                  settings=cycles.RenderSettings(resolution=24, spp=4, seed=4), roughness=0.4)["rgba"]
+    np.testing.assert_array_equal(records, other_seed)
 
 
 def test_set_envmap_swaps_lighting():
     v, f = sphere(5.0, subdivisions=3)
-    cs = cycles.build_scene(v, f, envmap=flat_env(0.2), resolution=16, roughness=0.5, spp=2)
+    cs = cycles.build_scene(v, f, envmap=flat_env(0.2), material=cycles.PrincipledMaterial(roughness=0.5),
+                            settings=cycles.RenderSettings(resolution=16, spp=2))
     cycles.set_camera(cs, w2c(), FOV)
     a = cycles.render(cs)["rgba"]
     cycles.set_envmap(cs, flat_env(0.8))
@@ -209,3 +216,25 @@ def test_bad_inputs_raise_clear_errors():
 
     with pytest.raises(DataError, match="no such"):
         cycles.render_scene(v, f, **{**base, "envmap": "/nonexistent/env.exr"})
+
+
+def test_records_validate_and_loose_arguments_are_refused():
+    """No render: the records' checks, and the API refuses arguments it would otherwise drop."""
+    with pytest.raises(ValueError, match="roughness"):
+        cycles.PrincipledMaterial(roughness=1.5).validate()
+    with pytest.raises(ValueError, match="subsurface_method"):
+        cycles.PrincipledMaterial(subsurface_method="CHRISTENSEN").validate()
+    with pytest.raises(ValueError, match="unknown material parameter"):
+        cycles.PrincipledMaterial.from_dict(dict(roughness=0.2, sheen=1.0))
+    m = cycles.PrincipledMaterial.from_dict(dict(roughness=0.2, metallic=1.0, subsurface_radius=[1, 0.3, 0.2]),
+                                            texture="t.png")
+    assert (m.roughness, m.metallic, m.texture, m.specular_ior_level) == (0.2, 1.0, "t.png", 0.5)
+    for bad, match in ((dict(spp=0), "spp"), (dict(filter_width=0.0), "filter_width"), (dict(device="TPU"), "device"),
+                       (dict(resolution=8, width=0), "resolution"), (dict(adaptive_threshold=-1), "adaptive")):
+        with pytest.raises(ValueError, match=match):
+            cycles.RenderSettings(**bad).validate()
+    v, f = sphere(5.0, subdivisions=1)
+    with pytest.raises(TypeError):
+        cycles.build_scene(v, f, envmap=flat_env(), resolution=16)  # loose settings: use RenderSettings
+    with pytest.raises(TypeError, match="unknown argument"):
+        cycles.render_scene(v, f, world_to_camera=w2c(), fov=FOV, envmap=flat_env(), roughnes=0.2)

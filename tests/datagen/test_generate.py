@@ -74,6 +74,32 @@ def test_layout_manifest_and_splits(dataset):
     assert stats["rendered_views"] == 6 and stats["cycles_s"] > 0
 
 
+def test_every_file_written_is_a_path_of_the_layout(dataset):
+    """The writer and the reader share datagen.layout: every file on disk is one the layout names."""
+    from datagen.layout import CameraSetup, DatasetLayout
+
+    out, _ = dataset
+    lay = DatasetLayout(out)
+    m = json.loads(lay.manifest.read_text())
+    named = {lay.manifest, lay.preview, lay.timing(0, 1)}
+    for e in sorted({e for o in m["objects"] for e in o["envmaps"]}):
+        named |= {lay.envmap(e), lay.envmap_png(e), lay.envmap_json(e)}
+    for o in m["objects"]:
+        i = o["index"]
+        named |= {lay.mesh_npz(i), lay.mesh_obj(i), lay.mesh_mtl(i), lay.texture(i), lay.object_json(i)}
+        for e in o["envmaps"]:
+            named.add(lay.sample_json(i, e))
+            for v in range(m["config"]["views"]):
+                named |= {lay.view_image(i, e, v), lay.view_image(i, e, v, srgb=True), lay.view_mask(i, e, v),
+                          lay.view_albedo(i, e, v), lay.view_camera(i, e, v)}
+    assert {p for p in out.rglob("*") if p.is_file()} == named
+    cam = CameraSetup.from_manifest(m)
+    assert (cam.distance, cam.elevation_deg, cam.fov) == (G.CAMERA_DISTANCE, G.CAMERA_ELEVATION_DEG, G.FOV)
+    assert list(cam.azimuths_deg) == G.azimuths(tiny_config()) and cam.resolution == 48
+    view = json.loads(lay.view_camera(*lay.finished_samples()[0], 1).read_text())
+    assert view["distance"] == cam.distance and view["fov"] == cam.fov and view["azimuth_deg"] == cam.azimuths_deg[1]
+
+
 def test_gt_mesh_rasterised_with_stored_camera_matches_cycles_alpha(dataset):
     raster = pytest.importorskip("dibrpp.raster")
     from dibrpp.camera import Cameras
@@ -135,8 +161,8 @@ def test_panorama_capture_follows_envmap_convention():
     env = (torch.stack([d[..., 1].clamp_min(0), d[..., 2].clamp_min(0), d[..., 0].clamp_min(0)], -1) + 0.05)
     env = env.float().numpy()
     C.reset()
-    C._make_world(env)
-    got = envmaps._capture(h, w, spp=4, seed=0)
+    C.make_world(env)
+    got = envmaps.capture_world(h, w, spp=4, seed=0)
     assert bpy.context.scene.camera.data.type == "PANO"
     assert np.abs(got - env).mean() < 0.01
     assert np.abs(got - env[:, ::-1]).mean() > 0.05  # a mirrored capture would fail

@@ -83,3 +83,26 @@ def test_corrupt_camera_is_named(damaged):
     with pytest.raises(DataError, match="view_01.json"):
         ds.camera(obj, env, 1)
     assert torch.is_tensor(ds.camera(obj, env, 0)[0])
+
+
+def test_camera_setup_comes_from_the_manifest_and_matches_every_view(tiny_glossy):
+    ds = MultiViewDataset(tiny_glossy, split="all", views_per_item=1)
+    cam = ds.camera_setup
+    assert (cam.distance, cam.elevation_deg) == (60.0, 27.0) and cam.resolution == ds.resolution == 32
+    assert len(cam.azimuths_deg) == ds.num_views
+    from dibrpp.conventions import orbit_world_to_camera
+
+    for v, az in enumerate(cam.azimuths_deg):
+        m, fov = ds.camera(*ds.samples[0], v)
+        assert fov == pytest.approx(cam.fov)
+        expected = orbit_world_to_camera(torch.tensor(cam.distance, dtype=torch.float64), cam.elevation_deg, az)
+        torch.testing.assert_close(m, expected.float(), atol=1e-4, rtol=0)
+
+
+def test_missing_camera_setup_is_named(damaged):
+    root, _ = damaged
+    m = json.loads((root / "manifest.json").read_text())
+    del m["camera"]
+    (root / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(DataError, match="camera set-up"):
+        MultiViewDataset(root, split="all").camera_setup

@@ -1,0 +1,185 @@
+"""The on-disk layout of a generated dataset, in one place: the writer (:mod:`datagen.generate`,
+:mod:`datagen.preview`) and the reader (:mod:`pipelines.dataset`) both ask :class:`DatasetLayout` for
+every path, and :class:`CameraSetup` reads the orbit camera back from the manifest.
+
+This module imports neither ``bpy`` nor ``torch`` (only the standard library), so a reader never pulls
+Blender in::
+
+    layout = DatasetLayout("data/glossy")
+    layout.manifest                       # data/glossy/manifest.json
+    layout.view_image(3, 7, 5)            # data/glossy/samples/obj_0003_env_0007/view_05.exr
+    camera = CameraSetup.from_manifest(json.loads(layout.manifest.read_text()))
+    camera.distance, camera.elevation_deg, camera.fov    # 60.0, 27.0, 0.691 (radians)
+
+The tree (one folder per dataset)::
+
+    manifest.json                                 generator version, config, seeds, splits, camera, ...
+    preview.png                                   contact sheet
+    timing/shard_0_of_1.json                      wall / Cycles time of a run
+    envmaps/env_0007.exr | .png | .json           linear HDR equirect map, its preview, its record (done marker)
+    objects/obj_0003/mesh.npz | mesh.obj | mesh.mtl | texture.png | object.json
+    samples/obj_0003_env_0007/sample.json         done marker of the sample
+    samples/obj_0003_env_0007/view_05.exr | view_05.png | view_05_mask.png | view_05_albedo.exr | view_05.json
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = ["CameraSetup", "DEFAULT_CAMERA", "DatasetLayout"]
+
+
+@dataclass(frozen=True)
+class CameraSetup:
+    """The orbit cameras of a dataset: every view looks at the origin from ``distance`` at ``elevation_deg``
+    and one azimuth of ``azimuths_deg``, with Blender's ``fov`` (radians, square image)."""
+
+    distance: float
+    elevation_deg: float
+    fov: float
+    azimuths_deg: tuple = ()
+    resolution: int | None = None
+
+    @property
+    def fov_deg(self) -> float:
+        return math.degrees(self.fov)
+
+    @classmethod
+    def from_manifest(cls, manifest: dict) -> "CameraSetup":
+        """The set-up a manifest records under ``camera``; KeyError / ValueError / TypeError if it has none."""
+        c = manifest["camera"]
+        res = c.get("resolution")
+        return cls(distance=float(c["distance"]), elevation_deg=float(c["elevation_deg"]), fov=float(c["fov"]),
+                   azimuths_deg=tuple(float(a) for a in c.get("azimuths_deg", ())),
+                   resolution=None if res is None else int(res))
+
+    def to_manifest(self) -> dict:
+        """The manifest's ``camera`` entry (key order as the generator has always written it)."""
+        return dict(distance=self.distance, elevation_deg=self.elevation_deg, fov=self.fov,
+                    azimuths_deg=list(self.azimuths_deg), resolution=self.resolution)
+
+
+# The generator's cameras: Blender's default camera (50 mm lens on a 36 mm sensor: 39.6 deg) at 60 units,
+# 27 deg above the horizon (objects are normalised to [-18, 18]).
+DEFAULT_CAMERA = CameraSetup(distance=60.0, elevation_deg=27.0, fov=2 * math.atan(18.0 / 50.0))
+
+_SAMPLE_NAME = re.compile(r"^obj_(\d+)_env_(\d+)$")
+
+
+class DatasetLayout:
+    """Every path of a dataset folder ``root``. Indices are ints; nothing here touches the disk except
+    :meth:`finished_samples` (a directory listing)."""
+
+    VIEW_SUFFIXES = (".exr", ".png", "_mask.png", "_albedo.exr", ".json")  # the files of one view, in order
+
+    def __init__(self, root):
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"DatasetLayout({str(self.root)!r})"
+
+    # ------------------------------------------------------------------ top level
+    @property
+    def manifest(self) -> Path:
+        return self.root / "manifest.json"
+
+    @property
+    def preview(self) -> Path:
+        return self.root / "preview.png"
+
+    def timing(self, shard_index: int, shard_count: int) -> Path:
+        return self.root / "timing" / f"shard_{shard_index}_of_{shard_count}.json"
+
+    # ------------------------------------------------------------------ environment maps
+    @property
+    def envmaps_dir(self) -> Path:
+        return self.root / "envmaps"
+
+    def envmap(self, env: int) -> Path:
+        """Linear HDR equirect map (H, 2H, RGB), top row first."""
+        return self.envmaps_dir / f"env_{env:04d}.exr"
+
+    def envmap_png(self, env: int) -> Path:
+        return self.envmaps_dir / f"env_{env:04d}.png"
+
+    def envmap_json(self, env: int) -> Path:
+        """The map's record; its existence marks the map finished."""
+        return self.envmaps_dir / f"env_{env:04d}.json"
+
+    # ------------------------------------------------------------------ objects
+    @property
+    def objects_dir(self) -> Path:
+        return self.root / "objects"
+
+    def object_dir(self, obj: int) -> Path:
+        return self.objects_dir / f"obj_{obj:04d}"
+
+    def mesh_npz(self, obj: int) -> Path:
+        return self.object_dir(obj) / "mesh.npz"
+
+    def mesh_obj(self, obj: int) -> Path:
+        return self.object_dir(obj) / "mesh.obj"
+
+    def mesh_mtl(self, obj: int) -> Path:
+        return self.object_dir(obj) / "mesh.mtl"
+
+    def texture(self, obj: int) -> Path:
+        return self.object_dir(obj) / "texture.png"
+
+    def object_json(self, obj: int) -> Path:
+        """The object's record; its existence marks the object finished."""
+        return self.object_dir(obj) / "object.json"
+
+    # ------------------------------------------------------------------ samples (object x env map) and views
+    @property
+    def samples_dir(self) -> Path:
+        return self.root / "samples"
+
+    @staticmethod
+    def sample_name(obj: int, env: int) -> str:
+        return f"obj_{obj:04d}_env_{env:04d}"
+
+    @staticmethod
+    def parse_sample_name(name: str) -> tuple[int, int]:
+        """(object, env map) of a sample folder name ``obj_0003_env_0007``."""
+        m = _SAMPLE_NAME.match(Path(name).name)
+        if not m:
+            raise ValueError(f"{name!r} is not a sample folder name (obj_XXXX_env_XXXX)")
+        return int(m.group(1)), int(m.group(2))
+
+    def sample_dir(self, obj: int, env: int) -> Path:
+        return self.samples_dir / self.sample_name(obj, env)
+
+    def sample_json(self, obj: int, env: int) -> Path:
+        """The sample's record; its existence marks the sample finished."""
+        return self.sample_dir(obj, env) / "sample.json"
+
+    @classmethod
+    def view_files(cls, view: int) -> list[str]:
+        """File names of one view inside its sample folder: exr, png, mask png, albedo exr, camera json."""
+        return [f"view_{view:02d}{s}" for s in cls.VIEW_SUFFIXES]
+
+    def view_image(self, obj: int, env: int, view: int, srgb: bool = False) -> Path:
+        """Linear RGBA EXR (alpha = anti-aliased coverage), or with ``srgb`` its sRGB RGBA PNG preview."""
+        return self.sample_dir(obj, env) / f"view_{view:02d}{'.png' if srgb else '.exr'}"
+
+    def view_mask(self, obj: int, env: int, view: int) -> Path:
+        return self.sample_dir(obj, env) / f"view_{view:02d}_mask.png"
+
+    def view_albedo(self, obj: int, env: int, view: int) -> Path:
+        return self.sample_dir(obj, env) / f"view_{view:02d}_albedo.exr"
+
+    def view_camera(self, obj: int, env: int, view: int) -> Path:
+        return self.sample_dir(obj, env) / f"view_{view:02d}.json"
+
+    def finished_samples(self) -> list[tuple[int, int]]:
+        """(object, env map) of every sample folder holding its done marker, sorted."""
+        out = []
+        for marker in self.samples_dir.glob("*/sample.json"):
+            try:
+                out.append(self.parse_sample_name(marker.parent.name))
+            except ValueError:
+                continue
+        return sorted(out)
