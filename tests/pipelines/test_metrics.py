@@ -1,4 +1,6 @@
 """Metrics on cases with answers known by hand."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -54,3 +56,64 @@ def test_chamfer_zero_for_the_same_mesh_and_known_for_a_shift():
     assert d == pytest.approx((0.1 / diag) ** 2, rel=0.1)
     with pytest.raises(ValueError, match="degenerate"):
         metrics.chamfer_distance(v, f, np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+# ----------------------------------------------------------------------------- light metrics (probe spheres)
+
+def _sun_map(direction, h=32, sun=200.0, sky=(0.3, 0.4, 0.6)):
+    """A sky of one colour with a small sun disc around ``direction`` (world frame)."""
+    from dibrpp.conventions import equirect_directions
+
+    d = equirect_directions(h, 2 * h)
+    cos = (d * torch.tensor(direction, dtype=torch.float32)).sum(-1)
+    img = torch.tensor(sky).expand(h, 2 * h, 3).clone()
+    img[cos > math.cos(math.radians(8))] = sun
+    return img[None]
+
+
+def test_a_light_scores_zero_against_itself_and_ignores_its_intensity():
+    from dibrpp.lights import EnvMap
+
+    env = _sun_map([0.6, 0.0, 0.8])
+    w2c = torch.eye(4)[None]
+    same = metrics.light_metrics(EnvMap(env), EnvMap(env), w2c)
+    brighter = metrics.light_metrics(EnvMap(5.0 * env), EnvMap(env), w2c)
+    for k in ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg"):
+        assert same[k].abs().max() < 1e-4, k
+        assert brighter[k].abs().max() < 1e-3, k
+
+
+def test_a_constant_light_scores_worse_than_the_truth_and_a_tint_shows_in_the_colour_angle():
+    from dibrpp.lights import EnvMap
+
+    env = _sun_map([0.6, 0.0, 0.8])
+    w2c = torch.eye(4)[None]
+    const = metrics.light_metrics(EnvMap(torch.ones(1, 8, 16, 3)), EnvMap(env), w2c)
+    assert const["probe_metal"] > 0.3 and const["probe_diffuse"] > 0.1
+    tint = torch.tensor([1.0, 1.0, 0.5])
+    tinted = metrics.light_metrics(EnvMap(env * tint), EnvMap(env), w2c)
+    want = math.degrees(math.acos(float(torch.nn.functional.cosine_similarity(
+        metrics.mean_colour(metrics.probe_renders(EnvMap(env), w2c)["diffuse"]),
+        metrics.mean_colour(metrics.probe_renders(EnvMap(env * tint), w2c)["diffuse"])))))
+    assert tinted["colour_deg"].item() == pytest.approx(want, abs=0.05) and want > 5
+
+
+def test_a_rotated_sun_gives_the_rotation_angle():
+    from dibrpp.lights import EnvMap
+
+    a = [math.cos(math.radians(40)), 0.0, math.sin(math.radians(40))]
+    for turn in (30.0, 90.0, 150.0):
+        t = math.radians(turn)  # the sun turned about +Z at the same elevation
+        b = [a[0] * math.cos(t), a[0] * math.sin(t), a[2]]
+        want = math.degrees(math.acos(sum(x * y for x, y in zip(a, b))))
+        got = metrics.light_metrics(EnvMap(_sun_map(b)), EnvMap(_sun_map(a)), torch.eye(4)[None])["direction_deg"]
+        assert got.item() == pytest.approx(want, abs=8.0)  # one cell of the 16 x 32 grid is 11 degrees
+
+
+def test_direction_is_undefined_without_a_dominant_light():
+    d, frac = metrics.dominant_direction(torch.ones(1, 16, 32, 3))
+    assert frac.item() < metrics.SUN_FRACTION
+    from dibrpp.lights import EnvMap
+
+    flat = EnvMap(torch.ones(1, 16, 32, 3))
+    assert torch.isnan(metrics.light_metrics(flat, flat, torch.eye(4)[None])["direction_deg"]).all()

@@ -1,0 +1,163 @@
+"""The encoder's heads reach the data, its priors hold exactly, and checkpoints carry their configuration."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dibrpp import Cameras
+from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
+from dibrpp.conventions import equirect_directions, linear_to_srgb
+from pipelines import losses
+from pipelines.model import Encoder, ModelConfig, encoder_input, squash, white_balance
+
+
+def _cams(n, size=32):
+    return Cameras.orbit(60.0, 27.0, torch.linspace(0, 300, n), 39.6, size)
+
+
+def _saturate(model, head, sign):
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.fill_(sign * 50.0)
+
+
+@pytest.mark.parametrize("kind", ["sg", "sh", "mc"])
+def test_light_is_white_balanced(kind):
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(shading=kind, lobes=4, image_size=32))
+    with torch.no_grad():
+        model.light_head.bias.add_(torch.randn_like(model.light_head.bias))
+    cams = _cams(2)
+    pred = model(torch.rand(2, 4, 32, 32), cams)
+    mean = pred.light(cams.world_to_camera).to_envmap(64, 128).image
+    w = torch.sin((torch.arange(64) + 0.5) * math.pi / 64).view(1, -1, 1, 1)
+    total = (mean * w).sum((1, 2))
+    assert torch.allclose(total, total.mean(-1, keepdim=True).expand_as(total), rtol=2e-2 if kind == "sh" else 1e-3)
+
+
+def test_free_light_keeps_its_colour():
+    light = {"amplitude": torch.tensor([[[1.0, 0.5, 0.2]]]), "sharpness": torch.tensor([[3.0]])}
+    assert not torch.allclose(light["amplitude"], white_balance(light, "sg", 16)["amplitude"])
+    model = Encoder(ModelConfig(shading="sg", lobes=2, image_size=32, light_colour="free"))
+    with torch.no_grad():
+        model.light_head.bias.view(2, 7)[:, 4:] = torch.tensor([1.0, 0.0, -1.0])
+    amp = model(torch.rand(1, 4, 32, 32), _cams(1)).light_params["amplitude"]
+    assert amp[0, 0, 0] > amp[0, 0, 2] * 2
+
+
+def test_shape_is_mirror_symmetric_and_starts_at_the_template_radius():
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=32))
+    pred = model(torch.rand(1, 4, 32, 32), _cams(1))
+    assert torch.allclose(pred.verts.norm(dim=-1), torch.full_like(pred.verts[..., 0], 12.0), atol=1e-3)
+    with torch.no_grad():
+        model.shape_head.bias.normal_(0, 3)
+    v = model(torch.rand(1, 4, 32, 32), _cams(1)).verts[0]
+    mirrored = v[model.mirror] * torch.tensor([1.0, -1.0, 1.0])
+    assert torch.allclose(v, mirrored, atol=1e-4)
+
+
+def test_texels_follow_the_template_surface():
+    model = Encoder(ModelConfig(image_size=32))
+    c = model.config
+    pos = (model.template_dirs[0][model.faces[model.texel_face]] * model.texel_bary[..., None]).sum(1)
+    d = equirect_directions(c.texture_height, c.texture_width).reshape(-1, 3)
+    # the point hit is on the texel's ray and on the (inscribed, faceted) sphere
+    assert torch.nn.functional.cosine_similarity(pos, d, dim=-1).min() > 1 - 1e-5
+    assert pos.norm(dim=-1).min() > 0.97 and pos.norm(dim=-1).max() <= 1 + 1e-5
+
+
+def test_projected_texture_sees_the_input_colour():
+    """A red input, untrained network: the texels facing the camera see red, the others see nothing."""
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=32))
+    cams = _cams(1)
+    rgba = torch.zeros(1, 32, 32, 4)
+    rgba[..., 0], rgba[..., 3] = 0.8, 1.0
+    verts = model._shape(model.shape_head.bias.detach()[None])
+    stem = model.stem(encoder_input(rgba))
+    seen = model._projected(stem, encoder_input(rgba), verts, cams)
+    facing = seen[:, -1] > 0
+    assert 0.2 < facing.float().mean() < 0.6
+    red = linear_to_srgb(torch.tensor(0.8))
+    assert torch.allclose(seen[:, 0][facing], red.expand(int(facing.sum())), atol=1e-5)
+    assert (seen[:, 0][~facing] == 0).all()
+
+
+def test_heads_reach_the_datasets_ground_truth(tiny_glossy):
+    """Saturate every head: the reachable shapes and materials cover the ground truth of a real dataset."""
+    manifest = json.loads((tiny_glossy / "manifest.json").read_text())
+    half = np.array([np.abs(np.load(tiny_glossy / "objects" / f"obj_{o['index']:04d}" / "mesh.npz")["verts"]).max(0)
+                     for o in manifest["objects"]])
+    truth = [json.loads((tiny_glossy / "objects" / f"obj_{o['index']:04d}" / "object.json").read_text())["material"]
+             for o in manifest["objects"]]
+    model = Encoder(ModelConfig(image_size=32, predict_metallic=True))
+    cams = _cams(1)
+    reach = {}
+    for sign in (-1, 1):
+        _saturate(model, model.shape_head, 0)  # offsets at 0 ...
+        model.shape_head.bias.data[-3:] = sign * 50.0  # ... and the per-axis scale at its bound
+        _saturate(model, model.material_head, sign)
+        pred = model(torch.rand(1, 4, 32, 32), cams)
+        reach[sign] = dict(half=pred.verts[0].abs().amax(0).detach().numpy(), rough=float(pred.roughness),
+                           spec=float(pred.specular), metal=float(pred.metallic))
+    assert (reach[1]["half"] >= half.max(0)).all() and (reach[-1]["half"] <= half.min(0)).all()
+    assert reach[-1]["spec"] == 0 and reach[1]["spec"] == 1 and reach[-1]["metal"] == 0 and reach[1]["metal"] == 1
+    for m in truth:
+        assert reach[-1]["spec"] <= m["specular_ior_level"] <= reach[1]["spec"]
+        assert reach[-1]["metal"] <= m["metallic"] <= reach[1]["metal"]
+        # every roughness down to the BRDF's floor is reachable; below it all roughnesses render the same
+        assert reach[-1]["rough"] <= max(m["roughness"], math.sqrt(MIN_ALPHA)) <= reach[1]["rough"]
+
+
+def test_roughness_has_gradient_over_its_whole_range():
+    lo, hi = ModelConfig().roughness_range
+    x = torch.linspace(-6, 6, 50, requires_grad=True)
+    alpha_from_roughness(squash(x, lo, hi)).sum().backward()
+    inside = (squash(x.detach()) > 0) & (squash(x.detach()) < 1)
+    assert (x.grad[inside] > 0).all()
+
+
+def test_config_is_saved_with_the_version_and_old_checkpoints_are_refused():
+    c = ModelConfig(shading="mc", lobes=8, texture="global")
+    assert ModelConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    with pytest.raises(ValueError, match="retrain"):
+        ModelConfig.from_dict({**c.to_dict(), "version": 1})
+    with pytest.raises(ValueError, match="texture"):
+        Encoder(ModelConfig(texture="flow"))
+
+
+def test_encoder_input_is_srgb_on_black_with_alpha():
+    rgba = torch.rand(2, 16, 16, 4)
+    x = encoder_input(rgba)
+    assert x.shape == (2, 4, 16, 16)
+    assert torch.allclose(x[:, :3], (linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]).permute(0, 3, 1, 2))
+    assert torch.equal(x[:, 3], rgba[..., 3])
+
+
+# ----------------------------------------------------------------------------- losses
+
+def test_hdr_srgb_is_srgb_below_one_and_keeps_gradients_above():
+    x = torch.linspace(0, 1, 101)
+    assert torch.allclose(losses.hdr_srgb(x), linear_to_srgb(x), atol=1e-6)
+    hi = torch.tensor([2.0, 50.0, 5000.0], requires_grad=True)
+    losses.hdr_srgb(hi).sum().backward()
+    assert (hi.grad > 0).all()
+    assert (torch.diff(losses.hdr_srgb(torch.logspace(-4, 4, 200))) > 0).all()
+
+
+def test_image_and_silhouette_losses_on_hand_made_cases():
+    mask = torch.zeros(1, 4, 4)
+    mask[:, :2] = 1
+    a, b = torch.zeros(1, 4, 4, 3), torch.zeros(1, 4, 4, 3)
+    b[:, :2] = 0.5
+    assert losses.image_l1(a, b, mask).item() == pytest.approx(0.5)
+    b[:, 2:] = 9.0  # background does not count
+    assert losses.image_l1(a, b, mask).item() == pytest.approx(0.5)
+    assert losses.soft_iou_loss(mask, mask).item() == pytest.approx(0)
+    half = mask.clone()
+    half[:, 1] = 0
+    assert losses.soft_iou_loss(half, mask).item() == pytest.approx(0.5)
+    assert losses.gradient_loss(b, b).item() == 0 and losses.gradient_loss(a, b).item() > 0
