@@ -14,7 +14,6 @@ Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.table
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
@@ -27,6 +26,7 @@ from dibrpp.lights import EnvMap
 from . import metrics
 from .dataset import MultiViewDataset, collate
 from .display import display_srgb, tonemap_envmap
+from .formatting import format_number, markdown_table, pyplot, save_figure, write_csv
 from .model import encoder_input
 from .report import write_report
 from .tables import write_tables
@@ -47,7 +47,7 @@ def load_run(run: Path):
 FIGURE_ROWS = 4
 NOVEL_AZIMUTHS = (90.0, 180.0)  # novel views: the input camera moved this far along its orbit
 FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)",
-                  *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
+                  "metal probe (ours)", "metal probe (GT)", *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
 METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC", "texture": "tex 1-NCC",
                 "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
 
@@ -88,8 +88,14 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     rows = []
     if figure:
         novel = [display_srgb(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
+        # probes scaled like the metric (best scale against the GT), so what is compared is what is shown
+        probe, probe_gt = (metrics.probe_renders(lt, cams.world_to_camera, resolution=64)["metal"] for lt in (light, gt_light))
+        scale = metrics.si_scale(probe, probe_gt).view(-1, 1, 1, 1)
+        exposure = 0.5 / metrics.mean_colour(probe_gt).mean(-1).clamp_min(1e-8).view(-1, 1, 1, 1)
         rows = [[display_srgb(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_srgb(out.rgb[k]), display_srgb(albedo[k]),
-                 display_srgb(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]), *(v[k] for v in novel)]
+                 display_srgb(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]),
+                 display_srgb(exposure[k] * scale[k] * probe[k, ..., :3]), display_srgb(exposure[k] * probe_gt[k, ..., :3]),
+                 *(v[k] for v in novel)]
                 for k in range(len(items))]
     return per_view, rows
 
@@ -123,11 +129,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
 
 def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | None = None) -> None:
     """Qualitative results like the paper's Fig. O-Q: one test view per row."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     ratios = [2 if c.startswith("light") else 1 for c in FIGURE_COLUMNS]
     fig, axes = plt.subplots(len(rows), len(FIGURE_COLUMNS), figsize=(2.2 * len(FIGURE_COLUMNS) + 1.2, 1.9 * len(rows)),
                              gridspec_kw=dict(width_ratios=ratios), squeeze=False)
@@ -142,10 +144,7 @@ def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | Non
             if j == 0 and row_labels:
                 ax.set_ylabel(row_labels[i], fontsize=8)
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def find_runs(root: Path) -> list[Path]:
@@ -155,18 +154,13 @@ def find_runs(root: Path) -> list[Path]:
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["dataset", "shading", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
-    with open(out / "all_runs.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, cols, extrasaction="ignore")
-        w.writeheader()
-        w.writerows(results)
-    lines = ["| dataset | method | K | seed | iterations | Image L1 | 2D IoU loss | Light 1-NCC | Tex 1-NCC | Chamfer "
-             "| diffuse probe | metal probe | mirror probe | colour (°) | direction (°) |",
-             "|---|---|---:|---:|---:|" + "---:|" * (len(METRICS) + len(LIGHT_METRICS))]
-    for r in results:
-        lines.append(f"| {r['dataset']} | {r['shading']} | {r['lobes'] if r['shading'] in ('sg', 'sh-sg') else ''} | "
-                     f"{r['seed']} | {r['iteration']} | " + " | ".join(f"{r.get(k, float('nan')):.4f}" for k in METRICS)
-                     + " | " + " | ".join(f"{r.get(k, float('nan')):.3g}" for k in LIGHT_METRICS) + " |")
-    text = "\n".join(lines) + "\n"
+    write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
+    header = ["dataset", "method", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
+              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)"]
+    rows = [[r["dataset"], r["shading"], r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
+             *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS)]
+            for r in results]
+    text = markdown_table(header, rows, "lllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS))) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
 

@@ -87,13 +87,22 @@ def probe_renders(light, world_to_camera: torch.Tensor, resolution: int = 32, sp
     return out
 
 
+def _foreground(pred_rgba, gt_rgba):
+    m = (gt_rgba[..., 3:] > 0.5).to(gt_rgba.dtype)
+    return ((pred_rgba[..., :3] * m).reshape(len(m), -1).double(), (gt_rgba[..., :3] * m).reshape(len(m), -1).double())
+
+
+def si_scale(pred_rgba: torch.Tensor, gt_rgba: torch.Tensor) -> torch.Tensor:
+    """(B,) the scale s minimising |s P - G| over the GT foreground (least squares)."""
+    p, g = _foreground(pred_rgba, gt_rgba)
+    return ((p * g).sum(1) / (p * p).sum(1).clamp_min(1e-30)).to(pred_rgba.dtype)
+
+
 def si_rmse(pred_rgba: torch.Tensor, gt_rgba: torch.Tensor) -> torch.Tensor:
     """(B,) scale-invariant relative RMSE: min_s |s P - G| / |G| over the GT foreground (one scale for
     all three channels, so a wrong colour counts). 0: identical up to intensity; 1: no better than black."""
-    m = (gt_rgba[..., 3:] > 0.5).to(gt_rgba.dtype)
-    p = (pred_rgba[..., :3] * m).reshape(len(m), -1).double()
-    g = (gt_rgba[..., :3] * m).reshape(len(m), -1).double()
-    s = (p * g).sum(1) / (p * p).sum(1).clamp_min(1e-30)
+    p, g = _foreground(pred_rgba, gt_rgba)
+    s = si_scale(pred_rgba, gt_rgba).double()
     return ((s[:, None] * p - g).norm(dim=1) / g.norm(dim=1).clamp_min(1e-30)).float()
 
 

@@ -6,10 +6,11 @@ holds on our data. Written as Markdown, LaTeX and CSV.
 """
 from __future__ import annotations
 
-import csv
 import json
 import statistics
 from pathlib import Path
+
+from .formatting import markdown_table, write_csv
 
 COLUMNS = ("image", "iou", "light", "texture")  # the paper's columns: ours beside the paper's
 HEADER = ("Image", "2D IoU", "Light", "Tex.")
@@ -48,11 +49,9 @@ def load_results(eval_dir: Path) -> dict:
     return out
 
 
-def format_value(v) -> str:
-    """Table cell: 3 decimals for losses, 1 for angles in degrees, a dash where there is no value."""
-    if v is None or v != v:
-        return "—"
-    return f"{v:.1f}" if abs(v) >= 10 else f"{v:.3f}"
+def format_value(v, spec: str = ".3f") -> str:
+    """Table cell: 3 decimals by default, a dash where there is no value (None or NaN)."""
+    return "—" if v is None or v != v else format(v, spec)
 
 
 def _row(label: str, key: tuple, results: dict, missing_hint: str) -> dict:
@@ -117,7 +116,7 @@ def _spread(seeds: list[dict]) -> list[dict]:
 def _claims(t: dict, results: dict) -> None:
     def metric(key, col):
         r = results.get(key)
-        return None if r is None else r[col]
+        return None if r is None else r.get(col)
 
     def claim(table, text, holds):
         verdict = "cannot be tested yet (runs missing)" if holds is None else ("holds" if holds else "does NOT hold")
@@ -172,16 +171,15 @@ def row_cells(r: dict) -> list[str]:
     for i in range(len(COLUMNS)):
         cells += [format_value(None if r["ours"] is None else r["ours"][i]),
                   format_value(None if r["paper"] is None else r["paper"][i])]
-    return cells + [format_value(None if r["light"] is None else r["light"][i]) for i in range(len(LIGHT_COLUMNS))]
+    return cells + [format_value(None if r["light"] is None else r["light"][i], ".1f" if c.endswith("_deg") else ".3f")
+                    for i, c in enumerate(LIGHT_COLUMNS)]
 
 
 def to_markdown(tab: dict) -> str:
-    head = "| | " + " | ".join(f"{h} ours | {h} paper" for h in HEADER) + " | " + " | ".join(LIGHT_HEADER) + " | |"
-    lines = [f"**{tab['title']}**", "", head, "|---|" + "---:|---:|" * len(HEADER) + "---:|" * len(LIGHT_HEADER) + "---|"]
-    for r in tab["rows"]:
-        lines.append(f"| {r['label']} | " + " | ".join(row_cells(r)) + f" | {r['note']} |")
-    lines += [""] + [f"- {c}" for c in tab["claims"]]
-    return "\n".join(lines) + "\n"
+    header = ["", *(f"{h} {who}" for h in HEADER for who in ("ours", "paper")), *LIGHT_HEADER, ""]
+    rows = [[r["label"], *row_cells(r), r["note"]] for r in tab["rows"]]
+    table = markdown_table(header, rows, "l" + "r" * (2 * len(HEADER) + len(LIGHT_HEADER)) + "l")
+    return "\n".join([f"**{tab['title']}**", "", table, ""] + [f"- {c}" for c in tab["claims"]]) + "\n"
 
 
 def to_latex(tab: dict) -> str:
@@ -203,10 +201,9 @@ def write_tables(eval_dir: Path) -> str:
     (eval_dir / "tables.md").write_text(md)
     (eval_dir / "tables.tex").write_text("\n".join(to_latex(t) for t in tables.values()))
     for name, tab in tables.items():
-        with open(eval_dir / f"{name}.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["row", *[f"{c}_ours" for c in COLUMNS], *[f"{c}_paper" for c in COLUMNS], *LIGHT_COLUMNS, "note"])
-            for r in tab["rows"]:
-                w.writerow([r["label"], *(r["ours"] or [""] * len(COLUMNS)), *(r["paper"] or [""] * len(COLUMNS)),
-                            *(r["light"] or [""] * len(LIGHT_COLUMNS)), r["note"]])
+        head = ["row", *[f"{c}_ours" for c in COLUMNS], *[f"{c}_paper" for c in COLUMNS], *LIGHT_COLUMNS, "note"]
+        write_csv(eval_dir / f"{name}.csv", [dict(zip(head, [r["label"], *(r["ours"] or [""] * len(COLUMNS)),
+                                                             *(r["paper"] or [""] * len(COLUMNS)),
+                                                             *(r["light"] or [""] * len(LIGHT_COLUMNS)), r["note"]]))
+                                             for r in tab["rows"]], head)
     return md

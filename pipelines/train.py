@@ -28,6 +28,7 @@ from dibrpp.io import DataError, atomic_path, write_png
 from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
 from .display import display_srgb, tonemap_envmap
+from .formatting import pyplot, save_figure
 from .losses import gradient_loss, hdr_srgb, image_l1, soft_iou_loss
 from .model import Encoder, ModelConfig, encoder_input
 
@@ -303,17 +304,12 @@ def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
 
 
 def plot_losses(log_path: Path, png_path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     with open(log_path) as f:
         rows = list(csv.DictReader(f))
     if not rows:
         return
     its = [int(r["iteration"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = pyplot().subplots(figsize=(7, 4))
     for key in ("total", "image", "iou", "laplacian", "gradient"):
         ax.plot(its, [float(r[key]) for r in rows], label=key)
     ax.set_yscale("log")
@@ -321,10 +317,7 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
     ax.set_ylabel("loss")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(png_path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, png_path)
 
 
 def main(argv=None) -> int:
