@@ -238,3 +238,19 @@ def test_records_validate_and_loose_arguments_are_refused():
         cycles.build_scene(v, f, envmap=flat_env(), resolution=16)  # loose settings: use RenderSettings
     with pytest.raises(TypeError, match="unknown argument"):
         cycles.render_scene(v, f, world_to_camera=w2c(), fov=FOV, envmap=flat_env(), roughnes=0.2)
+
+
+def test_denoiser_removes_noise_but_leaves_the_albedo_alone():
+    """RenderSettings(denoise=True): OpenImageDenoise (albedo + normal guides) on the shaded render only."""
+    v, f = sphere(5.0, subdivisions=3)
+    env = _reflection_env(16, 32)
+    kw = dict(world_to_camera=w2c(20, 10), fov=FOV, envmap=env, roughness=0.6, albedo_aov=True, resolution=24,
+              subsurface_weight=1.0, subsurface_radius=(1.0, 0.35, 0.2), subsurface_scale=0.5)
+    ref = cycles.render_scene(v, f, spp=256, seed=9, **kw)
+    raw = cycles.render_scene(v, f, spp=4, seed=1, **kw)
+    den = cycles.render_scene(v, f, spp=4, seed=1, denoise=True, **kw)
+    inside = ref["rgba"][..., 3] > 0.99
+    err = lambda out: np.sqrt(((out["rgba"][..., :3] - ref["rgba"][..., :3])[inside] ** 2).mean())  # noqa: E731
+    assert err(den) < 0.7 * err(raw), (err(den), err(raw))
+    np.testing.assert_array_equal(den["albedo"], raw["albedo"])
+    np.testing.assert_allclose(den["rgba"][..., 3], raw["rgba"][..., 3], atol=0.02)

@@ -239,3 +239,15 @@ def test_plan_is_deterministic_and_materials_follow_the_paper():
     assert all(k / 10 <= t < (k + 1) / 10 for k, t in enumerate(tones))  # balanced skin tones
     assert G.azimuths(tiny_config("diffuse", views=12))[0] == -82.5
     assert G.azimuths(tiny_config("metallic", views=24))[1] == 15.0
+
+
+def test_optional_settings_enter_the_config_only_when_set():
+    """--denoise / --envmaps are recorded when used; without them the manifest's config is what it always was,
+    so datasets made before these options resume with the same command."""
+    from datagen.__main__ import build_parser
+
+    plain = G.config_dict(G.make_config("glossy"))
+    assert not {"denoise", "envmaps_dir", "procedural_envmaps"} & set(plain)
+    assert G.config_dict(G.make_config("glossy", denoise=True))["denoise"] is True
+    args = build_parser().parse_args(["--dataset", "diffuse", "--out", "x", "--denoise"])
+    assert args.denoise is True and args.envmaps is None
