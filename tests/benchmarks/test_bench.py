@@ -1,10 +1,13 @@
 """Smoke runs of the benchmarks: they run end to end and write their tables (numbers are not asserted)."""
 import csv
 
+import pytest
+
 from benchmarks import renderer as bench_renderer
 from benchmarks import train_step as bench_train
 
 
+@pytest.mark.slow  # torch.compile of the SG shader and every case once: ~25 CPU-s, ~45 s on 2 busy cores
 def test_renderer_benchmark_quick(tmp_path):
     bench_renderer.main(["--quick", "--out", str(tmp_path)])
     rows = list(csv.DictReader(open(tmp_path / "renderer.csv")))

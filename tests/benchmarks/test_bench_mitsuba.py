@@ -19,6 +19,7 @@ def _assert_converged(row: dict) -> None:
     assert float(row["time_s"]) > 0 and float(row["peak_mb"]) >= 0
 
 
+@pytest.mark.slow  # four subprocesses (reference and optimisation per renderer) and Dr.Jit compiles: ~16 CPU-s
 def test_quick_benchmark_optimises_with_both_renderers(tmp_path):
     assert bench_mitsuba.main(["--quick", "--threads", "1", "--out", str(tmp_path)]) == 0
     rows = {r["renderer"]: r for r in csv.DictReader(open(tmp_path / "mitsuba.csv"))}

@@ -65,6 +65,7 @@ def test_cli_errors_are_clear(tmp_path):
     assert r.returncode == 2 and "make data" in r.stderr
 
 
+@pytest.mark.slow  # torchrun starts two training processes: ~16 CPU-s
 def test_ddp_with_two_cpu_processes(tiny_glossy, tmp_path):
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
     out = tmp_path / "ddp"
