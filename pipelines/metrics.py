@@ -71,7 +71,10 @@ def probe_renders(light, world_to_camera: torch.Tensor, resolution: int = 32, sp
     """{probe: (B, H, W, 4) linear RGBA} of the unit probe spheres at the origin under ``light`` (world
     frame), seen with the rotations of ``world_to_camera`` (B, 4, 4); Monte-Carlo with MIS, fixed seed."""
     from dibrpp import Cameras, Material, Renderer, icosphere
+    from dibrpp.lights import EnvMap
 
+    if not isinstance(light, EnvMap):  # SG / SH: tabulated (SH's negative ringing clipped, as no light is negative)
+        light = EnvMap(light.to_envmap(64, 128).image.clamp_min(0))
     b = world_to_camera.shape[0]
     w2c = torch.eye(4, dtype=world_to_camera.dtype).repeat(b, 1, 1)
     w2c[:, :3, :3] = world_to_camera[:, :3, :3]
@@ -147,7 +150,7 @@ SUN_FRACTION = 0.2
 
 def light_metrics(pred_light, gt_env, world_to_camera: torch.Tensor, resolution: int = 32, spp: int = 64) -> dict:
     """Per-view light metrics (name -> (B,)) of a predicted light against the GT env map, both in the world
-    frame: si-RMSE of the three probes, the colour angle of the diffuse probe (the irradiance's colour) and
+    frame (an EnvMap, SGLight or SHLight): si-RMSE of the three probes, the colour angle of the diffuse probe (the irradiance's colour) and
     the angle between the dominant light directions (NaN where the GT map has no dominant light)."""
     from dibrpp.lights import EnvMap
 
