@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import torch
+from tqdm import tqdm
 
 from dibrpp.io import DataError, atomic_path
 from dibrpp.lights import EnvMap
@@ -100,16 +101,29 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     return per_view, rows
 
 
-def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64) -> tuple[dict, dict]:
-    """Mean metrics over all test views of the run's dataset (or ``dataset``), and figure rows:
+VARIANT_FIELDS = ("texture", "light_colour")  # model choices a run may change (ablations)
+
+
+def run_variant(config: TrainConfig) -> str:
+    """'' for the default model, else the non-default choices (e.g. 'light_colour=free'); the paper-style
+    tables hold default models only, all_runs.md lists every run."""
+    default = TrainConfig()
+    return ", ".join(f"{k}={getattr(config, k)}" for k in VARIANT_FIELDS if getattr(config, k) != getattr(default, k))
+
+
+def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
+                 view_stride: int = 1) -> tuple[dict, dict]:
+    """Mean metrics over the test views of the run's dataset (or ``dataset``; every ``view_stride``-th view
+    of each sample), and figure rows:
     {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
     config, model, iteration = load_run(run)
     ds = MultiViewDataset(dataset or config.dataset, split="test", views_per_item=1)
     config.spp = eval_spp
     renderer = make_renderer(config, seed=0)
+    views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
     per_view = {}
-    for start in range(0, len(ds), batch):
-        values, _ = predict_views(model, renderer, ds, [ds[i] for i in range(start, min(start + batch, len(ds)))])
+    for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
+        values, _ = predict_views(model, renderer, ds, [ds[i] for i in views[start:start + batch]])
         for k, v in values.items():
             per_view.setdefault(k, []).append(v)
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
@@ -118,12 +132,13 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     result = {k: float(v.nanmedian() if k.startswith("direction_deg") else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
-                  seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(ds))
+                  seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
+                  view_stride=view_stride, variant=run_variant(config))
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
-    worst = {k: int(per_view[k].argmax()) for k in (*METRICS, "probe_metal")}
+    worst = {k: views[int(per_view[k].argmax())] for k in (*METRICS, "probe_metal")}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
     _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True)
-    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k][i]):.3g})" for k, i in worst.items()]
+    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k].max()):.3g})" for k in worst]
     return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
 
 
@@ -153,14 +168,14 @@ def find_runs(root: Path) -> list[Path]:
 
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "shading", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
+    cols = ["dataset", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
     write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
-    header = ["dataset", "method", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
+    header = ["dataset", "method", "variant", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
               "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)"]
-    rows = [[r["dataset"], r["shading"], r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
+    rows = [[r["dataset"], r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
              *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS)]
             for r in results]
-    text = markdown_table(header, rows, "lllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS))) + "\n"
+    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS))) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
 
@@ -170,6 +185,8 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", default="runs")
     ap.add_argument("--out", default="results/eval")
     ap.add_argument("--spp", type=int, default=64, help="MC samples per pixel for the re-renderings")
+    ap.add_argument("--view-stride", type=int, default=3,
+                    help="evaluate every n-th view of each test sample (3: 8 of the 24 views, every 45 degrees)")
     args = ap.parse_args(argv)
     runs = find_runs(Path(args.runs))
     if not runs:
@@ -182,11 +199,13 @@ def main(argv=None) -> int:
         config = json.loads((run / "config.json").read_text())
         path = out / Path(config["dataset"]).name / f"{run.name}.json"
         iteration = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
-        if path.exists() and json.loads(path.read_text())["iteration"] == iteration:
-            r = json.loads(path.read_text())  # this checkpoint was evaluated before
+        before = json.loads(path.read_text()) if path.exists() else {}
+        if (before.get("iteration"), before.get("view_stride"), before.get("spp")) == (iteration, args.view_stride, args.spp):
+            r = before  # this checkpoint was evaluated before, the same way
         else:
             try:
-                r, figures = evaluate_run(run, eval_spp=args.spp)
+                r, figures = evaluate_run(run, eval_spp=args.spp, view_stride=args.view_stride)
+                r["spp"] = args.spp
             except DataError as e:
                 print(f"error: {run}: {e}", file=sys.stderr)
                 return 2

@@ -45,7 +45,8 @@ def load_results(eval_dir: Path) -> dict:
     out = {}
     for p in sorted(eval_dir.glob("*/*.json")):
         r = json.loads(p.read_text())
-        out[run_key(r)] = r
+        if not r.get("variant"):  # ablations of the model (pipelines.evaluate.run_variant) are not paper rows
+            out[run_key(r)] = r
     return out
 
 

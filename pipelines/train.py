@@ -327,6 +327,10 @@ def main(argv=None) -> int:
     for f in fields(TrainConfig):
         if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
+    ap.add_argument("--texture", choices=("projected", "global"), default=None,
+                    help="albedo looked up from the input view (default) or decoded from the global code")
+    ap.add_argument("--light-colour", choices=("white", "free"), default=None,
+                    help="white-balanced light (default) or light of any colour")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
