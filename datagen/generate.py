@@ -91,20 +91,24 @@ class Config:
     def validate(self) -> None:
         if self.dataset not in DATASETS:
             raise ValueError(f"unknown dataset {self.dataset!r}; choose one of {', '.join(DATASETS)}")
-        for name in ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp",
-                     "texture_size", "envmap_height", "grid"):
-            if int(getattr(self, name)) <= 0:
-                raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
-        if self.envs_per_object > self.num_envmaps:
-            raise ValueError(f"--envs-per-object ({self.envs_per_object}) cannot exceed --num-envmaps ({self.num_envmaps})")
-        if self.max_bounces < 0:
-            raise ValueError("--max-bounces must be >= 0")
         if self.procedural_envmaps is not None:
             if not self.envmaps_dir:
                 raise ValueError("--procedural-envmaps adds procedural maps to those of --envmaps DIR; without "
                                  "--envmaps every map is procedural (set their number with --num-envmaps)")
             if int(self.procedural_envmaps) < 0:
                 raise ValueError(f"--procedural-envmaps must be >= 0, got {self.procedural_envmaps}")
+        for name in ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp",
+                     "texture_size", "envmap_height", "grid"):
+            if int(getattr(self, name)) <= 0:
+                raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        if self.envs_per_object > self.num_envmaps:
+            if self.envmaps_dir:
+                raise ValueError(f"--envs-per-object ({self.envs_per_object}) cannot exceed the number of env maps "
+                                 f"({self.num_file_envmaps} in {self.envmaps_dir} + {self.procedural_envmaps or 0} "
+                                 "procedural); add maps, --procedural-envmaps N or lower --envs-per-object")
+            raise ValueError(f"--envs-per-object ({self.envs_per_object}) cannot exceed --num-envmaps ({self.num_envmaps})")
+        if self.max_bounces < 0:
+            raise ValueError("--max-bounces must be >= 0")
         if self.envmaps_dir and self.num_file_envmaps <= 0:
             raise ValueError(f"--envmaps {self.envmaps_dir}: no env map files counted")
 

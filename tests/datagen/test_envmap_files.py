@@ -229,3 +229,14 @@ def test_tiny_dataset_from_a_folder_of_one_exr_and_one_hdr(tmp_path):
     write_exr(folder / "b_studio.exr", exr_map * 2)
     with pytest.raises(DataError, match="other env map files"):
         G.generate(cfg, out, workers=1, progress=False)
+
+
+def test_too_few_maps_and_bad_counts_say_what_to_do(tmp_path):
+    from datagen import generate as G
+
+    write_exr(tmp_path / "only.exr", smooth_map(4))
+    with pytest.raises(ValueError, match="1 in .* 0 procedural.*--procedural-envmaps"):
+        G.make_config("glossy", envmaps=tmp_path, envs_per_object=2)
+    assert G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=1, envs_per_object=2).num_envmaps == 2
+    with pytest.raises(ValueError, match="--procedural-envmaps must be >= 0"):
+        G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=-1)
