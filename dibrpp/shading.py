@@ -30,12 +30,16 @@ class GBuffer:
     num_images: int
 
 
-def per_image(fn, values: torch.Tensor, batch: torch.Tensor, num_images: int) -> torch.Tensor:
+def per_image(fn, values: torch.Tensor, batch: torch.Tensor, num_images: int, shared: bool = False) -> torch.Tensor:
     """Apply ``fn`` (which takes a (B, M, ...) batch of per-image values) to packed (N, ...) values.
 
     Lights index their batch by image; packed pixels are sorted by image, so they are laid out in a
-    padded (B, max_count, ...) block, processed at once, and packed back.
+    padded (B, max_count, ...) block, processed at once, and packed back. With one image, or when
+    ``shared`` (the light has batch 1 and broadcasts over the images), all values go in one row
+    (1, N, ...): the same values without the padding copies.
     """
+    if num_images == 1 or shared:
+        return fn(values.unsqueeze(0))[0]
     counts = torch.bincount(batch, minlength=num_images)
     start = torch.cumsum(counts, 0) - counts
     slot = torch.arange(batch.shape[0], device=batch.device) - start[batch]
@@ -65,7 +69,7 @@ class MCShader:
     """
 
     def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21,
-                 replay: bool = True, replay_batch_samples: int = 1 << 18):
+                 replay: bool = True, replay_batch_samples: int = 1 << 20):
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
         self.spp, self.mis, self.seed = int(spp), bool(mis), seed
@@ -147,26 +151,36 @@ class _MCPlan:
         kind, s = self.chunks[i]
         return torch.rand((self.n_pix, s, 3 if kind == "brdf" else 2), device=self.device, generator=gen)
 
-    def contribution(self, point, light, kind: str, u: torch.Tensor) -> torch.Tensor:
-        """(N, 3) sum over the samples of u (N, S, .) of f L w."""
+    def light_directions(self, light, u: torch.Tensor) -> torch.Tensor:
+        """(N, S, 3) env-map samples for uniforms (N, S, 2): the tables are fixed (detached), directions carry
+        no gradient."""
         g = self.g
-        lookup = lambda d: per_image(light.lookup, d, g.batch, g.num_images)  # noqa: E731
+        shared = getattr(light, "batch", None) == 1
+        return per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images, shared).detach()
+
+    def contribution(self, point, light, kind: str, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) sum over S samples of f L w; x: uniforms (N, S, 3) for "brdf", directions (N, S, 3) for "light"."""
+        g = self.g
+        shared = getattr(light, "batch", None) == 1
+        lookup = lambda d: per_image(light.lookup, d, g.batch, g.num_images, shared)  # noqa: E731
         n_brdf, n_light = self.n_brdf, self.n_light
 
         def weight(dirs, pdf_brdf):
             if not self.mis:
                 return 1.0 / (n_brdf * pdf_brdf).clamp_min(1e-12)
-            light_pdf = per_image(light.pdf, dirs, g.batch, g.num_images).detach()
+            light_pdf = per_image(light.pdf, dirs, g.batch, g.num_images, shared).detach()
             return 1.0 / (n_brdf * pdf_brdf + n_light * light_pdf).clamp_min(1e-12)
 
         if kind == "brdf":
-            dirs, pdf = point.sample(u)
+            dirs, pdf = point.sample(x)
         else:
-            # env-map sampling: the tables are fixed (detached), directions carry no gradient
-            dirs = per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images).detach()
+            dirs = x
             pdf = point.pdf(dirs)
         f = point.eval(dirs)
         return (f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)).sum(1)
+
+    def chunk_input(self, light, kind: str, u: torch.Tensor) -> torch.Tensor:
+        return u if kind == "brdf" else self.light_directions(light, u)
 
     def estimate(self, inputs) -> torch.Tensor:
         """The estimate (N, 3), drawing the chunks' uniforms in order and remembering the generator states."""
@@ -175,7 +189,7 @@ class _MCPlan:
         total = point.normal.new_zeros(self.n_pix, 3)
         for i, (kind, _) in enumerate(self.chunks):
             self.states.append(self.gen.get_state())
-            total = total + self.contribution(point, light, kind, self.draw(i, self.gen))
+            total = total + self.contribution(point, light, kind, self.chunk_input(light, kind, self.draw(i, self.gen)))
         return total
 
     def replay_uniforms(self, i: int) -> torch.Tensor:
@@ -209,9 +223,10 @@ class _MCReplay(torch.autograd.Function):
             where = [i for i, need in enumerate(needs) if need]
             point, light = plan.bind(leaves)
             for i, (kind, s) in enumerate(plan.chunks):
-                u = plan.replay_uniforms(i)
+                with torch.no_grad():  # env-map directions of the whole chunk at once, bit for bit as in forward
+                    x = plan.chunk_input(light, kind, plan.replay_uniforms(i))
                 for a in range(0, s, plan.sub):
-                    part = plan.contribution(point, light, kind, u[:, a:a + plan.sub])
+                    part = plan.contribution(point, light, kind, x[:, a:a + plan.sub])
                     got = torch.autograd.grad(part, wrt, grad_out, allow_unused=True)
                     for j, gr in zip(where, got):
                         if gr is not None:
