@@ -1,8 +1,24 @@
 """DIB-R style rasterization in pure torch (CPU and CUDA alike).
 
 Covered pixels: hard visibility (nearest surface wins), perspective-correct barycentrics that carry
-gradients to the vertex positions. Uncovered pixels: the soft silhouette
-``1 - prod_k (1 - exp(-d_k^2 / sigma))`` over the faces within ``soft_radius`` (NDC) of the pixel.
+gradients to the vertex positions. Three silhouettes come out of one pass:
+
+* ``mask``: hard coverage of the pixel centres;
+* ``coverage``: the anti-aliased alpha, i.e. the coverage of the front-most geometry filtered by
+  Cycles' pixel filter (Blackman-Harris, ``filter_width`` 1.5 px, which spans 3 px). It is
+  evaluated analytically: each pixel within the filter's reach of the outline takes the signed
+  distance of its centre to the nearest outline edge (in pixels) through the filter's 1D edge
+  response. It matches Cycles' ``film_transparent`` alpha and is differentiable w.r.t. the outline's
+  vertex positions;
+* ``soft_mask``: DIB-R's soft silhouette ``1 - prod_k (1 - exp(-d_k^2 / w^2))`` over the faces
+  within ``soft_radius_px`` of an uncovered pixel (d in pixels, w = ``soft_width_px``), 1 on covered
+  pixels. It spills ~0.5 px past the outline: it is a gradient device, not an image.
+
+``RasterSettings.visibility`` picks where silhouette gradients come from: ``"dibr"`` (the soft
+silhouette, as DIB-R / DIB-R++) or ``"edge_aa"`` (analytic edge antialiasing in the spirit of
+nvdiffrast's antialias op: the renderer blends silhouette pixels with the background by
+``coverage``, so image and alpha losses move the outline's vertices). ``Fragments.silhouette`` is
+the mask that a silhouette loss should read in either mode.
 
 Scaling: faces are expanded into (face, pixel) candidate pairs over their screen bounding boxes, so
 work and memory grow with the covered area plus the number of faces, never with their product.
@@ -21,14 +37,52 @@ from .mesh import Meshes
 NEAR_DEPTH = 1e-4  # faces with a vertex closer than this (or behind the camera) are dropped
 
 
+VISIBILITY_MODES = ("dibr", "edge_aa")
+# DIB-R's soft-silhouette width, sigma = 1/7000 NDC^2, and its 0.02 NDC search box, in pixels at 64 x 64
+# (the training resolution; 1 NDC = 32 px there): sqrt(sigma) = 0.382 px, 0.64 px.
+DIBR_SOFT_WIDTH_PX = 32.0 / 7000.0 ** 0.5
+DIBR_SOFT_RADIUS_PX = 0.64
+
+
 @dataclass
 class RasterSettings:
-    sigma: float = 1.0 / 7000.0  # soft-silhouette width in NDC^2 (DIB-R's value)
-    soft_radius: float = 0.02  # faces farther than this from a pixel (NDC) do not touch its soft mask
-    soft: bool = True  # compute the soft silhouette (needed for silhouette gradients)
-    # Skip faces wound clockwise on screen. Exact and ~2x faster for closed, consistently wound
-    # meshes (the template sphere); keep False for meshes of unknown winding.
+    """How :func:`rasterize` turns meshes into :class:`Fragments`.
+
+    visibility: where silhouette gradients come from (the paper's Sec. F.1 ablation).
+        ``"dibr"`` (default): DIB-R's soft silhouette (``Fragments.soft_mask``); the RGB image is the
+        hard-coverage render, whose colours reach the vertices through the barycentrics only.
+        ``"edge_aa"``: nvdiffrast-style analytic edge antialiasing; the renderer blends the pixels
+        that straddle the outline with the background by ``Fragments.coverage``, and that
+        coverage is differentiable w.r.t. the outline's vertex positions, so RGB and alpha losses
+        move the silhouette. No soft mask is computed. In both modes ``Fragments.silhouette`` is
+        what a silhouette (IoU) loss should read.
+    soft_width_px: width w of the soft silhouette exp(-d^2 / w^2), d the distance in pixels from an
+        uncovered pixel centre to a face. The default is DIB-R's sigma = 1/7000 NDC^2 at 64 x 64
+        (0.382 px); being in pixels, it means the same at every resolution.
+    soft_radius_px: faces farther than this from an uncovered pixel centre (pixels) do not touch its
+        soft mask (DIB-R's 0.02 NDC box at 64 x 64 = 0.64 px).
+    soft: compute the soft silhouette at all (``"dibr"`` only; without it ``soft_mask`` is the hard mask).
+    filter_width: the pixel filter of the anti-aliased ``coverage`` (the image alpha), as Cycles'
+        Blackman-Harris ``filter_width`` in pixels (Cycles' default 1.5 px spans 3 px). 0 makes the
+        coverage the hard mask (and ``"edge_aa"`` then has no silhouette gradient).
+    cull_backfaces: skip faces wound clockwise on screen. Exact and ~2x faster for closed, consistently
+        wound meshes (the template sphere); keep False for meshes of unknown winding.
+    """
+
+    visibility: str = "dibr"
+    soft_width_px: float = DIBR_SOFT_WIDTH_PX
+    soft_radius_px: float = DIBR_SOFT_RADIUS_PX
+    soft: bool = True
+    filter_width: float = 1.5
     cull_backfaces: bool = False
+
+    def __post_init__(self):
+        if self.visibility not in VISIBILITY_MODES:
+            raise ValueError(f"visibility must be one of {VISIBILITY_MODES}, got {self.visibility!r}")
+        if not self.soft_width_px > 0:
+            raise ValueError(f"soft_width_px must be positive, got {self.soft_width_px}")
+        if self.soft_radius_px < 0 or self.filter_width < 0:
+            raise ValueError("soft_radius_px and filter_width must be >= 0")
 
 
 @dataclass
@@ -40,17 +94,54 @@ class Fragments:
     """
 
     face_idx: torch.Tensor  # (B, H, W) long, -1 where nothing is covered
-    mask: torch.Tensor  # (B, H, W) float, hard coverage
-    soft_mask: torch.Tensor  # (B, H, W) float, 1 on covered pixels, soft silhouette elsewhere
+    mask: torch.Tensor  # (B, H, W) float, hard coverage of the pixel centres
+    soft_mask: torch.Tensor  # (B, H, W) float, 1 on covered pixels, DIB-R soft silhouette elsewhere
     depth: torch.Tensor  # (B, H, W) view depth, 0 where uncovered (differentiable)
     pix: torch.Tensor  # (N,) flat pixel index of covered pixels
     batch: torch.Tensor  # (N,) image index of covered pixels
     pix_face: torch.Tensor  # (N,) visible face
     bary: torch.Tensor  # (N, 3) perspective-correct barycentrics (differentiable)
+    # (B, H, W) anti-aliased alpha: filtered coverage of the front-most geometry (Cycles' alpha)
+    coverage: torch.Tensor | None = None
+    # uncovered pixels with coverage > 0 (flat indices into B*H*W) and the packed covered pixel
+    # (index into pix) whose colour they take when the image is antialiased
+    edge_pix: torch.Tensor | None = None
+    edge_src: torch.Tensor | None = None
+    visibility: str = "dibr"
 
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(self.face_idx.shape)
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        """(B, H, W) the image alpha: the anti-aliased coverage (the hard mask if none was computed)."""
+        return self.mask if self.coverage is None else self.coverage
+
+    @property
+    def silhouette(self) -> torch.Tensor:
+        """(B, H, W) what a silhouette loss should read: the soft mask ("dibr") or the coverage ("edge_aa")."""
+        return self.alpha if self.visibility == "edge_aa" else self.soft_mask
+
+    def antialias(self, packed: torch.Tensor, background: float = 0.0) -> torch.Tensor:
+        """Dense (B, H, W, C) image of packed (N, C) values blended with ``background`` by the coverage.
+
+        Covered pixels keep their value, uncovered pixels the coverage reaches take the value of the
+        nearest covered pixel; both are then weighted by the coverage (premultiplied alpha over
+        ``background``, like Cycles' film-transparent RGB). Differentiable w.r.t. the values and, through
+        the coverage, w.r.t. the outline's vertex positions.
+        """
+        if self.coverage is None:
+            return self.to_image(packed, background)
+        b, h, w = self.shape
+        pix, vals = self.pix, packed
+        if self.edge_pix is not None and self.edge_pix.numel():
+            pix = torch.cat([pix, self.edge_pix])
+            vals = torch.cat([packed, packed[self.edge_src]])
+        a = self.coverage.reshape(-1)[pix].unsqueeze(-1).to(vals.dtype)
+        out = packed.new_full((b * h * w, packed.shape[-1]), background)
+        out = out.index_put((pix,), a * vals + (1 - a) * background)
+        return out.view(b, h, w, -1)
 
     def interpolate(self, values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Packed (N, C) interpolation of per-corner values.
@@ -172,18 +263,27 @@ def rasterize(meshes: Meshes, cameras: Cameras, settings: RasterSettings | None 
     mask = torch.zeros(bsz * h * w, device=device, dtype=ndc.dtype).index_put((covered,), torch.ones_like(win_face, dtype=ndc.dtype))
     depth_img = torch.zeros(bsz * h * w, device=device, dtype=ndc.dtype).index_put((covered,), (1.0 / inv_depth).squeeze(-1))
 
-    if settings.soft:
-        soft = _soft_silhouette(ndc, faces, vb, vf, vpx, mask, settings, bsz, h, w)
+    # differentiable pixel coordinates of the vertices (pixel centres at integers, rows down)
+    vpix = torch.stack([(ndc[..., 0] + 1) * (0.5 * w) - 0.5, (1 - ndc[..., 1]) * (0.5 * h) - 0.5], -1)
+    if settings.soft and settings.visibility == "dibr":
+        soft = _soft_silhouette(vpix, faces, vb, vf, vpx, mask, settings, bsz, h, w)
     else:
         soft = mask
     shape = (bsz, h, w)
+    edge_pix = edge_src = None
+    if settings.filter_width > 0:
+        coverage, edge_pix = _coverage(vpix, faces, valid, area, mask, settings.filter_width, bsz, h, w)
+        edge_pix, edge_src = _nearest_covered(edge_pix, covered, bsz, h, w)
+        coverage = coverage.view(shape)
+    else:
+        coverage = mask.view(shape)
     return Fragments(face_idx.view(shape), mask.view(shape), soft.view(shape), depth_img.view(shape),
-                     covered, win_batch, win_face, bary)
+                     covered, win_batch, win_face, bary, coverage, edge_pix, edge_src, settings.visibility)
 
 
-def _soft_silhouette(ndc, faces, vb, vf, vpx, mask, settings: RasterSettings, bsz, h, w):
-    """Soft mask: 1 on covered pixels, 1 - prod(1 - exp(-d^2/sigma)) over nearby faces elsewhere."""
-    radius_px = settings.soft_radius * 0.5 * w
+def _soft_silhouette(vpix, faces, vb, vf, vpx, mask, settings: RasterSettings, bsz, h, w):
+    """Soft mask: 1 on covered pixels, 1 - prod(1 - exp(-d^2/w^2)) over nearby faces elsewhere (d, w in pixels)."""
+    radius_px = settings.soft_radius_px
     with torch.no_grad():
         lo = torch.ceil(vpx.amin(1) - radius_px).long()
         hi = torch.floor(vpx.amax(1) + radius_px).long()
@@ -203,12 +303,172 @@ def _soft_silhouette(ndc, faces, vb, vf, vpx, mask, settings: RasterSettings, bs
         d2_px = _triangle_dist2(p, vpx[owner])
         near = d2_px <= radius_px ** 2
         owner, col, row, pix = owner[near], col[near], row[near], pix[near]
-    centre = torch.stack([(2 * col + 1).to(ndc.dtype) / w - 1, 1 - (2 * row + 1).to(ndc.dtype) / h], -1)
-    tri = ndc[vb[owner].unsqueeze(1), faces[vf[owner]]]  # (P, 3, 2) differentiable
+    centre = torch.stack([col, row], -1).to(vpix.dtype)
+    tri = vpix[vb[owner].unsqueeze(1), faces[vf[owner]]]  # (P, 3, 2) differentiable, pixels
     d2 = _triangle_dist2(centre, tri)
-    prob = torch.exp(-d2 / settings.sigma).clamp_max(1 - 1e-6)
-    log_miss = torch.zeros(bsz * h * w, device=ndc.device, dtype=ndc.dtype).index_add(0, pix, torch.log1p(-prob))
+    prob = torch.exp(-d2 / settings.soft_width_px ** 2).clamp_max(1 - 1e-6)
+    log_miss = torch.zeros(bsz * h * w, device=vpix.device, dtype=vpix.dtype).index_add(0, pix, torch.log1p(-prob))
     return torch.where(mask > 0, mask, 1 - torch.exp(log_miss))
+
+
+# Blackman-Harris window a0 - a1 cos(2 pi t) + a2 cos(4 pi t) - a3 cos(6 pi t) on t in [0, 1].
+_BH = (0.35875, 0.48829, 0.14128, 0.01168)
+
+
+def edge_response(s: torch.Tensor, filter_width: float = 1.5) -> torch.Tensor:
+    """Filtered coverage of a pixel whose centre lies ``s`` pixels inside a straight edge.
+
+    Cycles' Blackman-Harris pixel filter of ``filter_width`` w spans 2w pixels and is separable; across
+    an axis-aligned edge its response is the filter's CDF, in closed form below (monotone, smooth,
+    0 at s <= -w, 1/2 at s = 0, 1 at s >= w). For edges at other angles the exact response (the CDF
+    of the filter projected on the edge normal) differs from this by at most 0.004.
+    """
+    a0, a1, a2, a3 = _BH
+    t = (s / (2 * filter_width) + 0.5).clamp(0, 1)
+    x = 2 * torch.pi * t
+    return t - (a1 * torch.sin(x) - a2 / 2 * torch.sin(2 * x) + a3 / 3 * torch.sin(3 * x)) / (2 * torch.pi * a0)
+
+
+def _mesh_edges(faces: torch.Tensor, num_verts: int):
+    """Unique undirected edges (E, 2) and, per face, the edge index of its sides (F, 3): side i joins corners i, i+1."""
+    a, b = faces, faces.roll(-1, 1)
+    key = torch.minimum(a, b) * num_verts + torch.maximum(a, b)
+    uniq, inverse = torch.unique(key.reshape(-1), return_inverse=True)
+    return torch.stack([uniq // num_verts, uniq % num_verts], 1), inverse.view(-1, 3)
+
+
+def _argmin_by(key: torch.Tensor, value: torch.Tensor, size: int) -> torch.Tensor:
+    """Indices of the entries with the smallest ``value`` for each distinct ``key`` in [0, size) (ties: first)."""
+    n = value.numel()
+    best = torch.full((size,), float("inf"), device=value.device, dtype=value.dtype)
+    best = best.scatter_reduce(0, key, value, "amin")
+    cand = (value <= best[key]).nonzero(as_tuple=True)[0]
+    first = torch.full((size,), n, device=value.device, dtype=torch.long).scatter_reduce(0, key[cand], cand, "amin")
+    return first[first < n]
+
+
+_SPAN_MARGIN_PX = 0.75  # how far past the uncovered pixels' nearest points an outline edge still counts
+
+
+def _coverage(vpix, faces, valid, area, mask, filter_width: float, bsz, h, w):
+    """Anti-aliased coverage: the edge response of the signed distance to the nearest outline edge.
+
+    Outline candidates are the contour edges of each image: edges with one valid face, or whose valid
+    faces are wound both ways on screen (front and back), or non-manifold ones. An uncovered pixel's
+    distance to the nearest contour edge is its exact distance to the covered region (the region's
+    boundary lies on contour edges). A covered pixel's distance to the outline is that to the nearest
+    contour edge that is also the nearest one of an uncovered pixel within 2 px, so contour edges
+    hidden behind nearer surfaces do not darken the interior. Pixels farther than the filter's reach keep the hard mask.
+
+    Returns the flat (B*H*W,) coverage, and the flat indices of the uncovered pixels it reaches.
+    """
+    reach = float(filter_width)
+    num_verts = vpix.shape[1]
+    edges, face_edges = _mesh_edges(faces, num_verts)
+    n_edges = edges.shape[0]
+    with torch.no_grad():
+        pos = (valid & (area > 0)).to(torch.int32)
+        neg = (valid & (area < 0)).to(torch.int32)
+        idx = face_edges.reshape(-1)
+        n_pos = torch.zeros(bsz, n_edges, dtype=torch.int32, device=vpix.device).index_add_(1, idx, pos.repeat_interleave(3, 1))
+        n_neg = torch.zeros(bsz, n_edges, dtype=torch.int32, device=vpix.device).index_add_(1, idx, neg.repeat_interleave(3, 1))
+        n_valid = n_pos + n_neg
+        contour = (n_valid == 1) | (n_valid > 2) | ((n_pos > 0) & (n_neg > 0))
+        cb, ce = contour.nonzero(as_tuple=True)
+        seg = vpix.detach()[cb.unsqueeze(1), edges[ce]]  # (M, 2, 2)
+        lo = torch.ceil(seg.amin(1) - reach).long()
+        hi = torch.floor(seg.amax(1) + reach).long()
+        owner, col, row = _face_pairs(lo, hi, w, h)
+        p = torch.stack([col, row], -1).to(seg.dtype)
+        a, ab = seg[owner, 0], seg[owner, 1] - seg[owner, 0]
+        t = ((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-20)
+        d2 = ((p - a - t.clamp(0, 1).unsqueeze(-1) * ab) ** 2).sum(-1)
+        near = d2 < reach ** 2
+        owner, col, row, p, t, d2 = owner[near], col[near], row[near], p[near], t[near], d2[near]
+        pix = cb[owner] * (h * w) + row * w + col
+        inside = mask[pix] > 0
+        out_sel = (~inside).nonzero(as_tuple=True)[0]
+        out_win = out_sel[_argmin_by(pix[out_sel], d2[out_sel], bsz * h * w)]
+        # Covered pixels see an edge only where it bounds the uncovered region: near the points where it is
+        # the nearest edge of an uncovered pixel. Each covered (pixel, edge) pair uses the part of the edge
+        # within a margin of the nearest such point (its foot along the edge, found by a sorted search),
+        # so that the hidden continuation of an edge past a T-junction does not darken the interior.
+        length = (seg[:, 1] - seg[:, 0]).norm(dim=-1).clamp_min(1e-10).double()
+        offset = 2 * (reach + _SPAN_MARGIN_PX)
+        stride = float(length.max()) + 2 * offset + 1 if len(length) else 1.0
+        along = lambda sel: owner[sel].double() * stride + t[sel].double() * length[owner[sel]] + offset  # noqa: E731
+        seen, _ = along(out_win).sort()
+        in_sel = inside.nonzero(as_tuple=True)[0]
+        if seen.numel():
+            key = along(in_sel)
+            i = torch.searchsorted(seen, key)
+            lo_key, hi_key = seen[(i - 1).clamp_min(0)], seen[i.clamp_max(len(seen) - 1)]
+            near_key = torch.where((key - lo_key).abs() < (hi_key - key).abs(), lo_key, hi_key)
+            o = owner[in_sel]
+            foot = (near_key - o.double() * stride - offset) / length[o]
+            same_edge = (near_key - o.double() * stride - offset).abs() <= length[o] + 2 * offset
+            in_sel, foot, o = in_sel[same_edge], foot[same_edge], o[same_edge]
+            margin = _SPAN_MARGIN_PX / length[o]
+            t_lo, t_hi = (foot - margin).clamp(0, 1).to(t.dtype), (foot + margin).clamp(0, 1).to(t.dtype)
+            clip = torch.minimum(torch.maximum(t[in_sel], t_lo), t_hi)
+            d2_in = ((p[in_sel] - seg[o, 0] - clip.unsqueeze(-1) * (seg[o, 1] - seg[o, 0])) ** 2).sum(-1)
+            keep = d2_in < reach ** 2
+            in_sel, d2_in, t_lo, t_hi = in_sel[keep], d2_in[keep], t_lo[keep], t_hi[keep]
+            pick = _argmin_by(pix[in_sel], d2_in, bsz * h * w)
+            in_win, t_lo, t_hi = in_sel[pick], t_lo[pick], t_hi[pick]
+        else:
+            in_win = t_lo = t_hi = in_sel[:0]
+        win = torch.cat([out_win, in_win])
+        win_owner, win_pix = owner[win], pix[win]
+        span_lo = torch.cat([torch.zeros_like(t[out_win]), t_lo.to(t.dtype)])
+        span_hi = torch.cat([torch.ones_like(t[out_win]), t_hi.to(t.dtype)])
+        sign = torch.cat([-torch.ones_like(out_win), torch.ones_like(in_win)]).to(vpix.dtype)
+        centre = p[win]
+    # differentiable signed distance (pixels) of each reached pixel centre to its outline edge's span
+    a = vpix[cb[win_owner], edges[ce[win_owner], 0]]
+    b = vpix[cb[win_owner], edges[ce[win_owner], 1]]
+    ab, ap = b - a, centre - a
+    len2 = (ab * ab).sum(-1)
+    t = (ap * ab).sum(-1) / len2.clamp_min(1e-20)
+    line = (ab[:, 0] * ap[:, 1] - ab[:, 1] * ap[:, 0]).abs() / len2.clamp_min(1e-20).sqrt()
+    end = a + torch.minimum(torch.maximum(t.detach(), span_lo), span_hi).unsqueeze(-1) * ab
+    point = ((centre - end) ** 2).sum(-1).clamp_min(1e-20).sqrt()
+    dist = torch.where((t > span_lo) & (t < span_hi), line, point)
+    alpha = edge_response(sign * dist, filter_width)
+    coverage = mask.index_put((win_pix,), alpha)
+    reached = win_pix[: len(out_win)][alpha[: len(out_win)].detach() > 0]
+    return coverage, reached
+
+
+# neighbours within a 5 x 5 window, nearest first
+_NEIGHBOURS = sorted(((dy, dx) for dy in range(-2, 3) for dx in range(-2, 3) if dy or dx), key=lambda o: (o[0] ** 2 + o[1] ** 2, o))
+
+
+def _nearest_in_window(pix: torch.Tensor, packed: torch.Tensor, offsets, h: int, w: int):
+    """First entry >= 0 of the flat image ``packed`` at ``offsets`` (dy, dx) around flat pixels ``pix``; -1 if none."""
+    img, rem = pix // (h * w), pix % (h * w)
+    row, col = rem // w, rem % w
+    off = torch.tensor(offsets, device=pix.device)
+    r, c = row.unsqueeze(1) + off[:, 0], col.unsqueeze(1) + off[:, 1]
+    inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+    nb = packed[img.unsqueeze(1) * (h * w) + r.clamp(0, h - 1) * w + c.clamp(0, w - 1)]
+    nb = torch.where(inside, nb, torch.full_like(nb, -1))
+    first = (nb >= 0).to(torch.int8).argmax(1, keepdim=True)
+    return nb.gather(1, first).squeeze(1)
+
+
+def _nearest_covered(edge_pix, covered, bsz, h, w):
+    """For uncovered pixels ``edge_pix``, the packed index of the nearest covered pixel in a 5 x 5 window."""
+    device = covered.device
+    with torch.no_grad():
+        packed = torch.full((bsz * h * w,), -1, dtype=torch.long, device=device)
+        packed[covered] = torch.arange(covered.numel(), device=device)
+        src = _nearest_in_window(edge_pix, packed, _NEIGHBOURS[:8], h, w)  # 3 x 3 first: almost always enough
+        far = (src < 0).nonzero(as_tuple=True)[0]
+        if far.numel():
+            src[far] = _nearest_in_window(edge_pix[far], packed, _NEIGHBOURS[8:], h, w)
+        keep = src >= 0
+    return edge_pix[keep], src[keep]
 
 
 def sample_texture(texture: torch.Tensor, uv: torch.Tensor, batch: torch.Tensor, wrap_u: bool = False) -> torch.Tensor:

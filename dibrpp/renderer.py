@@ -15,7 +15,15 @@ from .shading import GBuffer, make_shader
 
 @dataclass
 class RenderOutput:
-    image: torch.Tensor  # (B, H, W, 4) linear RGB + alpha (= soft mask); RGB is 0 where uncovered
+    """A render: ``image`` (B, H, W, 4) linear RGB + alpha.
+
+    alpha: the anti-aliased coverage (``Fragments.coverage``), which matches Cycles' film-transparent
+    alpha (Blackman-Harris 1.5 px). RGB: with ``visibility="dibr"`` the hard-coverage render (0 where
+    no pixel centre is covered); with ``"edge_aa"`` premultiplied by the coverage, like Cycles' RGB.
+    For a silhouette loss read :attr:`silhouette`, not ``alpha``.
+    """
+
+    image: torch.Tensor  # (B, H, W, 4)
     fragments: Fragments
     gbuffer: GBuffer
 
@@ -25,7 +33,18 @@ class RenderOutput:
 
     @property
     def alpha(self) -> torch.Tensor:
+        """(B, H, W) anti-aliased coverage (the image's alpha channel)."""
         return self.image[..., 3]
+
+    @property
+    def soft_mask(self) -> torch.Tensor:
+        """(B, H, W) DIB-R soft silhouette (the hard mask when it was not computed, e.g. with "edge_aa")."""
+        return self.fragments.soft_mask
+
+    @property
+    def silhouette(self) -> torch.Tensor:
+        """(B, H, W) what a silhouette (IoU) loss should read: the soft mask ("dibr") or the coverage ("edge_aa")."""
+        return self.fragments.silhouette
 
 
 def shading_albedo(material: Material, meshes: Meshes, frags: Fragments) -> torch.Tensor:
@@ -99,18 +118,19 @@ class Renderer:
         return RenderOutput(_compose(frags, radiance), frags, g)
 
     def render_albedo(self, meshes: Meshes, cameras: Cameras, material: Material) -> RenderOutput:
-        """Unlit base colour (the texture metric's input), alpha = soft mask."""
+        """Unlit base colour (the texture metric's input), alpha = coverage."""
         frags = self.rasterize(meshes, cameras)
         g = build_gbuffer(meshes, cameras, material, frags)
         return RenderOutput(_compose(frags, g.point.albedo), frags, g)
 
     def render_normals(self, meshes: Meshes, cameras: Cameras) -> RenderOutput:
-        """World-space shading normals (no lighting), alpha = soft mask."""
+        """World-space shading normals (no lighting), alpha = coverage."""
         frags = self.rasterize(meshes, cameras)
         g = build_gbuffer(meshes, cameras, Material(albedo=torch.ones(1, 3, device=frags.bary.device)), frags)
         return RenderOutput(_compose(frags, g.point.normal), frags, g)
 
 
 def _compose(frags: Fragments, rgb_packed: torch.Tensor) -> torch.Tensor:
-    rgb = frags.to_image(rgb_packed)
-    return torch.cat([rgb, frags.soft_mask.unsqueeze(-1)], -1)
+    """RGB + coverage alpha; "edge_aa" blends the outline's pixels with the (black) background by the coverage."""
+    rgb = frags.antialias(rgb_packed) if frags.visibility == "edge_aa" else frags.to_image(rgb_packed)
+    return torch.cat([rgb, frags.alpha.unsqueeze(-1).to(rgb.dtype)], -1)
