@@ -57,24 +57,25 @@ class MCShader:
     random numbers for reproducible renders and tests (None: torch's global generator of the device).
 
     replay (default True): memory independent of ``spp``. When gradients are needed, the estimate is a
-    custom autograd function (:class:`_MCReplay`) that runs the sample chunks without building a graph
+    custom autograd function (:class:`_MCReplay`) that evaluates the samples without building a graph
     and remembers only the random generator's state at the start of each chunk; its backward redraws
-    exactly the same uniforms chunk by chunk (path replay, as Mitsuba 3's prb integrator), recomputes
-    each chunk's contribution with autograd on and back-propagates ``grad_output`` through it at once.
-    Values and samples are those of ``replay=False`` (the plain autograd path, which keeps every
-    sample's intermediates until backward), and gradients agree to float rounding. No double backward.
-    max_batch_samples: pixel x sample pairs drawn per chunk (this sets which uniform goes to which
-    sample, so it is part of the estimator's definition for a seed). replay_batch_samples: pixel x
-    sample pairs per recomputation in backward (only memory and speed depend on it).
+    exactly the same uniforms chunk by chunk (path replay, as in Mitsuba 3's prb integrator), recomputes
+    each slice of samples with autograd on and back-propagates ``grad_output`` through it at once.
+    Values are those of ``replay=False`` (the plain autograd path, which keeps every sample's
+    intermediates until backward) bit for bit, and gradients agree to float rounding. No double backward.
+
+    max_batch_samples: pixel x sample pairs drawn from the generator at once (this sets which uniform goes
+    to which sample, so it is part of the estimator for a seed). eval_batch_samples: pixel x sample pairs
+    evaluated at once, in forward and when replaying (only memory and speed depend on it).
     """
 
     def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21,
-                 replay: bool = True, replay_batch_samples: int = 1 << 20):
+                 replay: bool = True, eval_batch_samples: int = 1 << 18):
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
         self.spp, self.mis, self.seed = int(spp), bool(mis), seed
         self.max_batch_samples = max_batch_samples
-        self.replay, self.replay_batch_samples = bool(replay), int(replay_batch_samples)
+        self.replay, self.eval_batch_samples = bool(replay), int(eval_batch_samples)
 
     def __call__(self, g: GBuffer, light) -> torch.Tensor:
         plan = _MCPlan(self, g, light)
@@ -110,7 +111,7 @@ class _MCPlan:
         self.n_light = shader.spp // 2 if shader.mis else 0
         self.n_brdf = shader.spp - self.n_light
         self.chunk = max(1, shader.max_batch_samples // max(self.n_pix, 1))
-        self.sub = max(1, shader.replay_batch_samples // max(self.n_pix, 1))
+        self.sub = max(1, shader.eval_batch_samples // max(self.n_pix, 1))
         self.chunks = ([("brdf", min(self.chunk, self.n_brdf - s0)) for s0 in range(0, self.n_brdf, self.chunk)]
                        + [("light", min(self.chunk, self.n_light - s0)) for s0 in range(0, self.n_light, self.chunk)])
         if shader.seed is not None:
@@ -151,15 +152,13 @@ class _MCPlan:
         kind, s = self.chunks[i]
         return torch.rand((self.n_pix, s, 3 if kind == "brdf" else 2), device=self.device, generator=gen)
 
-    def light_directions(self, light, u: torch.Tensor) -> torch.Tensor:
-        """(N, S, 3) env-map samples for uniforms (N, S, 2): the tables are fixed (detached), directions carry
-        no gradient."""
-        g = self.g
-        shared = getattr(light, "batch", None) == 1
-        return per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images, shared).detach()
+    def slices(self, i: int) -> list[slice]:
+        """The sample slices of chunk ``i`` evaluated at once."""
+        s = self.chunks[i][1]
+        return [slice(a, min(s, a + self.sub)) for a in range(0, s, self.sub)]
 
-    def contribution(self, point, light, kind: str, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3) sum over S samples of f L w; x: uniforms (N, S, 3) for "brdf", directions (N, S, 3) for "light"."""
+    def terms(self, point, light, kind: str, u: torch.Tensor) -> torch.Tensor:
+        """(N, S, 3) per-sample terms f L w for uniforms u (N, S, 3) ("brdf") or (N, S, 2) ("light")."""
         g = self.g
         shared = getattr(light, "batch", None) == 1
         lookup = lambda d: per_image(light.lookup, d, g.batch, g.num_images, shared)  # noqa: E731
@@ -172,15 +171,14 @@ class _MCPlan:
             return 1.0 / (n_brdf * pdf_brdf + n_light * light_pdf).clamp_min(1e-12)
 
         if kind == "brdf":
-            dirs, pdf = point.sample(x)
+            dirs, pdf = point.sample(u)
         else:
-            dirs = x
+            # env-map sampling: the tables are fixed (detached), directions carry no gradient
+            with torch.no_grad():
+                dirs = per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images, shared)
             pdf = point.pdf(dirs)
         f = point.eval(dirs)
-        return (f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)).sum(1)
-
-    def chunk_input(self, light, kind: str, u: torch.Tensor) -> torch.Tensor:
-        return u if kind == "brdf" else self.light_directions(light, u)
+        return f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)
 
     def estimate(self, inputs) -> torch.Tensor:
         """The estimate (N, 3), drawing the chunks' uniforms in order and remembering the generator states."""
@@ -189,7 +187,10 @@ class _MCPlan:
         total = point.normal.new_zeros(self.n_pix, 3)
         for i, (kind, _) in enumerate(self.chunks):
             self.states.append(self.gen.get_state())
-            total = total + self.contribution(point, light, kind, self.chunk_input(light, kind, self.draw(i, self.gen)))
+            u = self.draw(i, self.gen)
+            parts = [self.terms(point, light, kind, u[:, sl]) for sl in self.slices(i)]
+            # one sum over the chunk's samples: the same additions, whatever the slices
+            total = total + (parts[0] if len(parts) == 1 else torch.cat(parts, 1)).sum(1)
         return total
 
     def replay_uniforms(self, i: int) -> torch.Tensor:
@@ -222,11 +223,10 @@ class _MCReplay(torch.autograd.Function):
             wrt = [t for t, need in zip(leaves, needs) if need]
             where = [i for i, need in enumerate(needs) if need]
             point, light = plan.bind(leaves)
-            for i, (kind, s) in enumerate(plan.chunks):
-                with torch.no_grad():  # env-map directions of the whole chunk at once, bit for bit as in forward
-                    x = plan.chunk_input(light, kind, plan.replay_uniforms(i))
-                for a in range(0, s, plan.sub):
-                    part = plan.contribution(point, light, kind, x[:, a:a + plan.sub])
+            for i, (kind, _) in enumerate(plan.chunks):
+                u = plan.replay_uniforms(i)
+                for sl in plan.slices(i):
+                    part = plan.terms(point, light, kind, u[:, sl]).sum(1)
                     got = torch.autograd.grad(part, wrt, grad_out, allow_unused=True)
                     for j, gr in zip(where, got):
                         if gr is not None:

@@ -75,7 +75,7 @@ def test_replay_matches_plain_autograd_values_and_every_gradient(mis, images, li
     image = env_image(batch=light_batch, dtype=dtype)
     rot = rotation(dtype) if rotated else None
     # several generator chunks (7 samples) and several recomputation slices per chunk (3 samples)
-    kw = dict(spp=37, mis=mis, seed=5, max_batch_samples=n_pix * 7, replay_batch_samples=n_pix * 3)
+    kw = dict(spp=37, mis=mis, seed=5, max_batch_samples=n_pix * 7, eval_batch_samples=n_pix * 3)
     plain_out, plain = shade_with_grads(MCShader(replay=False, **kw), values, image, batch, images, rot)
     out, grads = shade_with_grads(MCShader(replay=True, **kw), values, image, batch, images, rot)
     assert torch.equal(out, plain_out)  # same samples, same arithmetic: the render does not change
@@ -133,7 +133,7 @@ def test_replay_gradients_agree_with_finite_differences():
     def loss(mis):
         point = ShadingPoint(values["normal"], values["view"], values["albedo"], (rough * rough).expand(12),
                              values["metallic"], values["specular"])
-        return (MCShader(spp=24, mis=mis, seed=4, max_batch_samples=12 * 5, replay_batch_samples=12 * 2)(
+        return (MCShader(spp=24, mis=mis, seed=4, max_batch_samples=12 * 5, eval_batch_samples=12 * 2)(
             GBuffer(point, batch, 1), EnvMap(image)) * w).sum()
 
     # roughness moves the sampled directions; with fixed random numbers the estimate is smooth in it
@@ -204,8 +204,16 @@ def test_replay_on_cuda_matches_plain(seed):
     for replay in (False, True):
         torch.cuda.manual_seed(9)
         results.append(shade_with_grads(MCShader(spp=16, seed=seed, replay=replay, max_batch_samples=50 * 5,
-                                                 replay_batch_samples=50 * 2), values, image, batch, 1))
+                                                 eval_batch_samples=50 * 2), values, image, batch, 1))
     (out0, g0), (out1, g1) = results
     assert torch.equal(out0, out1)
     for name in g0:
         assert torch.allclose(g0[name], g1[name], rtol=1e-10, atol=1e-12), name
+
+
+def test_evaluation_slices_do_not_change_the_estimate():
+    values, image = point_tensors(30, dtype=torch.float32), env_image(dtype=torch.float32)
+    g = GBuffer(ShadingPoint(*(values[k] for k in FIELDS)), torch.zeros(30, dtype=torch.long), 1)
+    outs = [MCShader(spp=20, seed=1, max_batch_samples=30 * 8, eval_batch_samples=e)(g, EnvMap(image))
+            for e in (30 * 3, 30, 1 << 30)]
+    assert torch.equal(outs[0], outs[1]) and torch.equal(outs[0], outs[2])
