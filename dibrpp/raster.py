@@ -357,8 +357,10 @@ def _coverage(vpix, faces, valid, area, mask, filter_width: float, bsz, h, w):
     faces are wound both ways on screen (front and back), or non-manifold ones. An uncovered pixel's
     distance to the nearest contour edge is its exact distance to the covered region (the region's
     boundary lies on contour edges). A covered pixel's distance to the outline is that to the nearest
-    contour edge that is also the nearest one of an uncovered pixel within 2 px, so contour edges
-    hidden behind nearer surfaces do not darken the interior. Pixels farther than the filter's reach keep the hard mask.
+    contour edge, restricted to the part of it within ``_SPAN_MARGIN_PX`` of a point where it is the
+    nearest edge of an uncovered pixel: contour edges hidden behind nearer surfaces (the continuation
+    of an outline past a T-junction) do not darken the interior. A pixel near two outline edges (a
+    corner, a sliver) sees only the nearer one. Pixels beyond the filter's reach keep the hard mask.
 
     Returns the flat (B*H*W,) coverage, and the flat indices of the uncovered pixels it reaches.
     """
