@@ -182,6 +182,20 @@ def _face_pairs(lo: torch.Tensor, hi: torch.Tensor, width: int, height: int):
     return owner, col, row
 
 
+def _take(index: torch.Tensor, *arrays: torch.Tensor):
+    """Rows ``index`` (indices, or a boolean mask turned into indices once) of each array, by index_select."""
+    if index.dtype == torch.bool:
+        index = index.nonzero(as_tuple=True)[0]
+    return tuple(a.index_select(0, index) for a in arrays)
+
+
+def _gather(x: torch.Tensor, batch: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """x (B, V, ...) at (batch, idx): batch (N,), idx (N, k) -> (N, k, ...), through one flat index_select."""
+    flat = (batch.unsqueeze(1) * x.shape[1] + idx).reshape(-1)
+    rows = x.reshape(x.shape[0] * x.shape[1], *x.shape[2:]).index_select(0, flat)
+    return rows.view(*idx.shape, *x.shape[2:])
+
+
 def _edge_barycentrics(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
     """Screen-space barycentrics of points p (..., 2) in triangles (a, b, c); also the signed area."""
     area = (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
@@ -235,8 +249,8 @@ def rasterize(meshes: Meshes, cameras: Cameras, settings: RasterSettings | None 
         p = torch.stack([col, row], -1).to(vpx.dtype)
         bary_s, _ = _edge_barycentrics(p, vpx[owner, 0], vpx[owner, 1], vpx[owner, 2])
         inside = (bary_s >= -1e-6).all(-1)
-        owner, bary_s = owner[inside], bary_s[inside]
-        pix = vb[owner] * (h * w) + row[inside] * w + col[inside]
+        owner, bary_s, row, col = _take(inside, owner, bary_s, row, col)
+        pix = vb[owner] * (h * w) + row * w + col
         inv_z = (bary_s / tri_z[vb[owner], vf[owner]]).sum(-1)
         z = 1.0 / inv_z
         # depth test: nearest z per pixel, ties broken by the lowest face index
@@ -250,8 +264,9 @@ def rasterize(meshes: Meshes, cameras: Cameras, settings: RasterSettings | None 
         win_batch = covered // (h * w)
 
     # Differentiable barycentrics of the winners (screen space, then perspective-correct).
-    tri = ndc[win_batch.unsqueeze(1), faces[win_face]]  # (N, 3, 2)
-    tz = depth[win_batch.unsqueeze(1), faces[win_face]]  # (N, 3)
+    win_corners = faces.index_select(0, win_face)
+    tri = _gather(ndc, win_batch, win_corners)  # (N, 3, 2)
+    tz = _gather(depth, win_batch, win_corners)  # (N, 3)
     rem = covered % (h * w)
     centre = torch.stack([(2 * (rem % w) + 1).to(ndc.dtype) / w - 1, 1 - (2 * (rem // w) + 1).to(ndc.dtype) / h], -1)
     bary_screen, _ = _edge_barycentrics(centre, tri[:, 0], tri[:, 1], tri[:, 2])
@@ -294,17 +309,17 @@ def _soft_silhouette(vpix, faces, vb, vf, vpx, mask, settings: RasterSettings, b
         c1, r1 = (hi[:, 0] + 1).clamp(0, w), (hi[:, 1] + 1).clamp(0, h)
         n_empty = sat[vb, r1, c1] - sat[vb, r0, c1] - sat[vb, r1, c0] + sat[vb, r0, c0]
         reach = (n_empty > 0).nonzero(as_tuple=True)[0]
-        vb, vf, vpx, lo, hi = vb[reach], vf[reach], vpx[reach], lo[reach], hi[reach]
+        vb, vf, vpx, lo, hi = _take(reach, vb, vf, vpx, lo, hi)
         owner, col, row = _face_pairs(lo, hi, w, h)
         pix = vb[owner] * (h * w) + row * w + col
         keep = mask[pix] == 0
-        owner, col, row, pix = owner[keep], col[keep], row[keep], pix[keep]
+        owner, col, row, pix = _take(keep, owner, col, row, pix)
         p = torch.stack([col, row], -1).to(vpx.dtype)
-        d2_px = _triangle_dist2(p, vpx[owner])
+        d2_px = _triangle_dist2(p, vpx.index_select(0, owner))
         near = d2_px <= radius_px ** 2
-        owner, col, row, pix = owner[near], col[near], row[near], pix[near]
+        owner, col, row, pix = _take(near, owner, col, row, pix)
     centre = torch.stack([col, row], -1).to(vpix.dtype)
-    tri = vpix[vb[owner].unsqueeze(1), faces[vf[owner]]]  # (P, 3, 2) differentiable, pixels
+    tri = _gather(vpix, vb[owner], faces.index_select(0, vf[owner]))  # (P, 3, 2) differentiable, pixels
     d2 = _triangle_dist2(centre, tri)
     prob = torch.exp(-d2 / settings.soft_width_px ** 2).clamp_max(1 - 1e-6)
     log_miss = torch.zeros(bsz * h * w, device=vpix.device, dtype=vpix.dtype).index_add(0, pix, torch.log1p(-prob))
@@ -342,8 +357,9 @@ def _argmin_by(key: torch.Tensor, value: torch.Tensor, size: int) -> torch.Tenso
     n = value.numel()
     best = torch.full((size,), float("inf"), device=value.device, dtype=value.dtype)
     best = best.scatter_reduce(0, key, value, "amin")
-    cand = (value <= best[key]).nonzero(as_tuple=True)[0]
-    first = torch.full((size,), n, device=value.device, dtype=torch.long).scatter_reduce(0, key[cand], cand, "amin")
+    cand = (value <= best.index_select(0, key)).nonzero(as_tuple=True)[0]
+    first = torch.full((size,), n, device=value.device, dtype=torch.long)
+    first = first.scatter_reduce(0, key.index_select(0, cand), cand, "amin")
     return first[first < n]
 
 
@@ -377,58 +393,59 @@ def _coverage(vpix, faces, valid, area, mask, filter_width: float, bsz, h, w):
         n_valid = n_pos + n_neg
         contour = (n_valid == 1) | (n_valid > 2) | ((n_pos > 0) & (n_neg > 0))
         cb, ce = contour.nonzero(as_tuple=True)
-        seg = vpix.detach()[cb.unsqueeze(1), edges[ce]]  # (M, 2, 2)
+        seg = _gather(vpix.detach(), cb, edges.index_select(0, ce))  # (M, 2, 2)
         lo = torch.ceil(seg.amin(1) - reach).long()
         hi = torch.floor(seg.amax(1) + reach).long()
         owner, col, row = _face_pairs(lo, hi, w, h)
         p = torch.stack([col, row], -1).to(seg.dtype)
-        a, ab = seg[owner, 0], seg[owner, 1] - seg[owner, 0]
+        seg_o = seg.index_select(0, owner)
+        a, ab = seg_o[:, 0], seg_o[:, 1] - seg_o[:, 0]
         t = ((p - a) * ab).sum(-1) / (ab * ab).sum(-1).clamp_min(1e-20)
         d2 = ((p - a - t.clamp(0, 1).unsqueeze(-1) * ab) ** 2).sum(-1)
         near = d2 < reach ** 2
-        owner, col, row, p, t, d2 = owner[near], col[near], row[near], p[near], t[near], d2[near]
-        pix = cb[owner] * (h * w) + row * w + col
-        inside = mask[pix] > 0
-        out_sel = (~inside).nonzero(as_tuple=True)[0]
-        out_win = out_sel[_argmin_by(pix[out_sel], d2[out_sel], bsz * h * w)]
+        owner, col, row, p, t, d2 = _take(near, owner, col, row, p, t, d2)
+        pix = cb.index_select(0, owner) * (h * w) + row * w + col
+        inside = mask.index_select(0, pix) > 0
+        size = bsz * h * w
+        # uncovered pixels: the nearest contour edge (its distance is the distance to the covered region)
+        o_pix, o_owner, o_p, o_t, o_d2 = _take(~inside, pix, owner, p, t, d2)
+        o_pix, o_owner, o_p, o_t = _take(_argmin_by(o_pix, o_d2, size), o_pix, o_owner, o_p, o_t)
         # Covered pixels see an edge only where it bounds the uncovered region: near the points where it is
         # the nearest edge of an uncovered pixel. Each covered (pixel, edge) pair uses the part of the edge
         # within a margin of the nearest such point (its foot along the edge, found by a sorted search),
         # so that the hidden continuation of an edge past a T-junction does not darken the interior.
+        i_pix, i_owner, i_p, i_t = _take(inside, pix, owner, p, t)
         length = (seg[:, 1] - seg[:, 0]).norm(dim=-1).clamp_min(1e-10).double()
         offset = 2 * (reach + _SPAN_MARGIN_PX)
         stride = float(length.max()) + 2 * offset + 1 if len(length) else 1.0
-        along = lambda sel: owner[sel].double() * stride + t[sel].double() * length[owner[sel]] + offset  # noqa: E731
-        seen, _ = along(out_win).sort()
-        in_sel = inside.nonzero(as_tuple=True)[0]
-        if seen.numel():
-            key = along(in_sel)
-            i = torch.searchsorted(seen, key)
-            lo_key, hi_key = seen[(i - 1).clamp_min(0)], seen[i.clamp_max(len(seen) - 1)]
+        seen, _ = (o_owner.double() * stride + o_t.double() * length.index_select(0, o_owner) + offset).sort()
+        if seen.numel() and i_pix.numel():
+            i_len = length.index_select(0, i_owner)
+            base = i_owner.double() * stride + offset
+            key = base + i_t.double() * i_len
+            j = torch.searchsorted(seen, key)
+            lo_key, hi_key = seen.index_select(0, (j - 1).clamp_min(0)), seen.index_select(0, j.clamp_max(len(seen) - 1))
             near_key = torch.where((key - lo_key).abs() < (hi_key - key).abs(), lo_key, hi_key)
-            o = owner[in_sel]
-            foot = (near_key - o.double() * stride - offset) / length[o]
-            same_edge = (near_key - o.double() * stride - offset).abs() <= length[o] + 2 * offset
-            in_sel, foot, o = in_sel[same_edge], foot[same_edge], o[same_edge]
-            margin = _SPAN_MARGIN_PX / length[o]
+            same_edge = (near_key - base).abs() <= i_len + 2 * offset
+            foot = (near_key - base) / i_len
+            i_pix, i_owner, i_p, i_t, i_len, foot = _take(same_edge, i_pix, i_owner, i_p, i_t, i_len, foot)
+            margin = _SPAN_MARGIN_PX / i_len
             t_lo, t_hi = (foot - margin).clamp(0, 1).to(t.dtype), (foot + margin).clamp(0, 1).to(t.dtype)
-            clip = torch.minimum(torch.maximum(t[in_sel], t_lo), t_hi)
-            d2_in = ((p[in_sel] - seg[o, 0] - clip.unsqueeze(-1) * (seg[o, 1] - seg[o, 0])) ** 2).sum(-1)
-            keep = d2_in < reach ** 2
-            in_sel, d2_in, t_lo, t_hi = in_sel[keep], d2_in[keep], t_lo[keep], t_hi[keep]
-            pick = _argmin_by(pix[in_sel], d2_in, bsz * h * w)
-            in_win, t_lo, t_hi = in_sel[pick], t_lo[pick], t_hi[pick]
+            clip = torch.minimum(torch.maximum(i_t, t_lo), t_hi)
+            i_seg = seg.index_select(0, i_owner)
+            d2_in = ((i_p - i_seg[:, 0] - clip.unsqueeze(-1) * (i_seg[:, 1] - i_seg[:, 0])) ** 2).sum(-1)
+            i_pix, i_owner, i_p, t_lo, t_hi, d2_in = _take(d2_in < reach ** 2, i_pix, i_owner, i_p, t_lo, t_hi, d2_in)
+            i_pix, i_owner, i_p, t_lo, t_hi = _take(_argmin_by(i_pix, d2_in, size), i_pix, i_owner, i_p, t_lo, t_hi)
         else:
-            in_win = t_lo = t_hi = in_sel[:0]
-        win = torch.cat([out_win, in_win])
-        win_owner, win_pix = owner[win], pix[win]
-        span_lo = torch.cat([torch.zeros_like(t[out_win]), t_lo.to(t.dtype)])
-        span_hi = torch.cat([torch.ones_like(t[out_win]), t_hi.to(t.dtype)])
-        sign = torch.cat([-torch.ones_like(out_win), torch.ones_like(in_win)]).to(vpix.dtype)
-        centre = p[win]
+            i_pix, i_owner, i_p, t_lo, t_hi = i_pix[:0], i_owner[:0], i_p[:0], i_t[:0], i_t[:0]
+        n_out = len(o_pix)
+        win_owner, win_pix, centre = torch.cat([o_owner, i_owner]), torch.cat([o_pix, i_pix]), torch.cat([o_p, i_p])
+        span_lo = torch.cat([torch.zeros_like(o_t), t_lo])
+        span_hi = torch.cat([torch.ones_like(o_t), t_hi])
+        sign = torch.cat([-torch.ones_like(o_t), torch.ones_like(t_lo)]).to(vpix.dtype)
     # differentiable signed distance (pixels) of each reached pixel centre to its outline edge's span
-    a = vpix[cb[win_owner], edges[ce[win_owner], 0]]
-    b = vpix[cb[win_owner], edges[ce[win_owner], 1]]
+    ends = _gather(vpix, cb[win_owner], edges.index_select(0, ce[win_owner]))  # (P, 2, 2)
+    a, b = ends[:, 0], ends[:, 1]
     ab, ap = b - a, centre - a
     len2 = (ab * ab).sum(-1)
     t = (ap * ab).sum(-1) / len2.clamp_min(1e-20)
@@ -438,7 +455,7 @@ def _coverage(vpix, faces, valid, area, mask, filter_width: float, bsz, h, w):
     dist = torch.where((t > span_lo) & (t < span_hi), line, point)
     alpha = edge_response(sign * dist, filter_width)
     coverage = mask.index_put((win_pix,), alpha)
-    reached = win_pix[: len(out_win)][alpha[: len(out_win)].detach() > 0]
+    reached = win_pix[:n_out][alpha[:n_out].detach() > 0]
     return coverage, reached
 
 
