@@ -144,21 +144,43 @@ class ShadingPoint:
         f_d = fresnel_dielectric(self.n_dot_v, eta_from_f0(self.f0_dielectric)) * (self.specular > 0)
         return ((1 - self.metallic) * (1 - f_d)).unsqueeze(-1) * self.albedo
 
-    def eval(self, light_dirs: torch.Tensor) -> torch.Tensor:
-        """BRDF times cosine, f(l, v) (n.l), for light directions (N, S, 3) -> (N, S, 3)."""
+    def _half_vector_terms(self, light_dirs: torch.Tensor):
+        """Shared by :meth:`eval` and :meth:`pdf`: raw n.l, n.h, v.h (N, S) and the GGX D(n.h) for directions (N, S, 3)."""
         n, v = self.normal.unsqueeze(1), self.view.unsqueeze(1)
         n_dot_l = (n * light_dirs).sum(-1)
-        above = (n_dot_l > 0).to(n_dot_l.dtype)
-        n_dot_l = n_dot_l.clamp(1e-6, 1)
         h = torch.nn.functional.normalize(light_dirs + v, dim=-1, eps=1e-12)
         n_dot_h = (n * h).sum(-1)
-        v_dot_h = (v * h).sum(-1).clamp(0, 1)
+        v_dot_h = (v * h).sum(-1)
+        return n_dot_l, n_dot_h, v_dot_h, ggx_d(n_dot_h, self.alpha.unsqueeze(1))  # ggx_d clamps n.h to [0, 1]
+
+    def _eval(self, terms) -> torch.Tensor:
+        n_dot_l, n_dot_h, v_dot_h, d = terms
+        above = (n_dot_l > 0).to(n_dot_l.dtype)
+        n_dot_l = n_dot_l.clamp(1e-6, 1)
+        v_dot_h = v_dot_h.clamp(0, 1)
         alpha = self.alpha.unsqueeze(1)
         n_dot_v = self.n_dot_v.unsqueeze(1)
-        spec = ggx_d(n_dot_h, alpha) * geometry_term(n_dot_v, n_dot_l, alpha, self.geometry) / (4 * n_dot_v)
+        spec = d * geometry_term(n_dot_v, n_dot_l, alpha, self.geometry) / (4 * n_dot_v)
         spec = self.fresnel(v_dot_h) * spec.unsqueeze(-1)  # (n.l) cancels the 1/(n.l) of eq. (1)
         diffuse = self.diffuse_weight().unsqueeze(1) / math.pi * n_dot_l.unsqueeze(-1)
         return (spec + diffuse) * above.unsqueeze(-1)
+
+    def _pdf(self, terms) -> torch.Tensor:
+        n_dot_l, n_dot_h, v_dot_h, d = terms
+        pdf_spec = d * n_dot_h.clamp(0, 1) / (4 * v_dot_h.clamp_min(1e-6))
+        pdf_diff = n_dot_l.clamp_min(0) / math.pi
+        p_spec = self.specular_selection_probability().unsqueeze(1)
+        pdf = p_spec * pdf_spec + (1 - p_spec) * pdf_diff
+        return torch.where(n_dot_l > 0, pdf, torch.zeros_like(pdf))
+
+    def eval(self, light_dirs: torch.Tensor) -> torch.Tensor:
+        """BRDF times cosine, f(l, v) (n.l), for light directions (N, S, 3) -> (N, S, 3)."""
+        return self._eval(self._half_vector_terms(light_dirs))
+
+    def eval_and_pdf(self, light_dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(:meth:`eval`, :meth:`pdf`) at once, sharing the half vector and the GGX term (same values)."""
+        terms = self._half_vector_terms(light_dirs)
+        return self._eval(terms), self._pdf(terms)
 
     def specular_selection_probability(self) -> torch.Tensor:
         """(N,) probability of sampling the GGX lobe rather than the cosine lobe (a variance heuristic)."""
@@ -170,6 +192,11 @@ class ShadingPoint:
 
     def sample(self, u: torch.Tensor):
         """Sample light directions from the BRDF mixture. u: (N, S, 3) uniforms -> (dirs (N, S, 3), pdf (N, S))."""
+        dirs = self.sample_directions(u)
+        return dirs, self.pdf(dirs)
+
+    def sample_directions(self, u: torch.Tensor) -> torch.Tensor:
+        """The directions (N, S, 3) of :meth:`sample` alone."""
         n, v = self.normal, self.view
         t, b = _tangent_frame(n)
         alpha = self.alpha.unsqueeze(1)
@@ -188,22 +215,11 @@ class ShadingPoint:
         l_diff = _to_world(l_diff_local, t, b, n)
         p_spec = self.specular_selection_probability().unsqueeze(1)
         pick_spec = (u[..., 2] < p_spec).unsqueeze(-1)
-        dirs = torch.where(pick_spec, l_spec, l_diff)
-        return dirs, self.pdf(dirs)
+        return torch.where(pick_spec, l_spec, l_diff)
 
     def pdf(self, light_dirs: torch.Tensor) -> torch.Tensor:
         """Solid-angle pdf (N, S) of :meth:`sample` for given directions."""
-        n, v = self.normal.unsqueeze(1), self.view.unsqueeze(1)
-        n_dot_l = (n * light_dirs).sum(-1)
-        h = torch.nn.functional.normalize(light_dirs + v, dim=-1, eps=1e-12)
-        n_dot_h = (n * h).sum(-1).clamp(0, 1)
-        v_dot_h = (v * h).sum(-1).clamp_min(1e-6)
-        alpha = self.alpha.unsqueeze(1)
-        pdf_spec = ggx_d(n_dot_h, alpha) * n_dot_h / (4 * v_dot_h)
-        pdf_diff = n_dot_l.clamp_min(0) / math.pi
-        p_spec = self.specular_selection_probability().unsqueeze(1)
-        pdf = p_spec * pdf_spec + (1 - p_spec) * pdf_diff
-        return torch.where(n_dot_l > 0, pdf, torch.zeros_like(pdf))
+        return self._pdf(self._half_vector_terms(light_dirs))
 
 
 def _tangent_frame(n: torch.Tensor):

@@ -171,13 +171,12 @@ class _MCPlan:
             return 1.0 / (n_brdf * pdf_brdf + n_light * light_pdf).clamp_min(1e-12)
 
         if kind == "brdf":
-            dirs, pdf = point.sample(u)
+            dirs = point.sample_directions(u)
         else:
             # env-map sampling: the tables are fixed (detached), directions carry no gradient
             with torch.no_grad():
                 dirs = per_image(lambda uu: light.sample(uu)[0], u, g.batch, g.num_images, shared)
-            pdf = point.pdf(dirs)
-        f = point.eval(dirs)
+        f, pdf = point.eval_and_pdf(dirs)
         return f * lookup(dirs) * weight(dirs, pdf).unsqueeze(-1)
 
     def estimate(self, inputs) -> torch.Tensor:
