@@ -2,7 +2,8 @@
 
 - :class:`MCShader`: Monte-Carlo integration against an :class:`~dibrpp.lights.EnvMap` with BRDF
   importance sampling (GGX by inverse transform + cosine lobe) and, optionally, env-map sampling
-  combined by multiple importance sampling (balance heuristic). Unbiased.
+  combined by multiple importance sampling (balance heuristic). Unbiased. Its gradients come from path
+  replay by default (memory independent of the sample count: the samples are redrawn in backward).
 - :class:`SGShader`: closed form against an :class:`~dibrpp.lights.SGLight` (cosine SG for the
   diffuse, warped NDF SG for the specular, eq. 6-7).
 - :class:`SHShader`: DIB-R's Lambertian baseline under :class:`~dibrpp.lights.SHLight`, or under an
