@@ -91,6 +91,10 @@ class Fragments:
 
     Dense views are (B, H, W, ...); the packed views list only the N covered pixels, which is what
     shading works on: ``pix`` are flat indices into B*H*W, ``batch`` their image index.
+
+    Silhouettes: ``mask`` (hard), ``coverage`` (anti-aliased, = ``alpha``, the image alpha that matches
+    Cycles), ``soft_mask`` (DIB-R's), and ``silhouette``, the one a silhouette loss should read for the
+    ``visibility`` mode the fragments were made with.
     """
 
     face_idx: torch.Tensor  # (B, H, W) long, -1 where nothing is covered
