@@ -4,7 +4,7 @@ On-disk format (one folder per dataset; every path comes from :class:`datagen.la
 
     manifest.json                      generator version, config, seeds, splits, counts, file layout
     envmaps/env_0007.exr               linear HDR equirect map (H, 2H, RGB), top row first
-    envmaps/env_0007.png               tone-mapped preview;  env_0007.json: kind, parameters or source file (done marker)
+    envmaps/env_0007.png               tone-mapped preview;  env_0007.json: kind, parameters / source (done marker)
     objects/obj_0003/mesh.npz          verts (V,3) f32, faces (F,3) i64, uvs (T,2) f32 (v up), face_uvs (F,3) i64
     objects/obj_0003/mesh.obj          the same mesh as OBJ (v/vt faces) + mesh.mtl -> texture.png
     objects/obj_0003/texture.png       albedo, sRGB 8-bit, top row first
@@ -264,44 +264,43 @@ def _init_worker(threads: int) -> None:
     import bpy  # noqa: F401  (pay the import once per worker)
 
 
-def task_envmap(out: str, cfg: Config, i: int, kind: str) -> dict:
+def _task_envmap(out: str, i: int, make) -> dict:
+    """Env map ``i`` unless finished: ``make()`` -> (env (H, 2H, 3), record); writes the EXR, its tone-mapped
+    PNG and the record (the done marker)."""
     from dibrpp.io import write_exr, write_png
 
-    from . import envmaps
-
     layout = DatasetLayout(out)
-    marker = layout.envmap_json(i)
-    if marker.exists():
+    if layout.envmap_json(i).exists():
         return dict(kind="envmap", index=i, skipped=True)
     t0 = time.perf_counter()
-    rng = np.random.default_rng(seed_for(cfg, _ENV, i, 1))
-    h = cfg.envmap_height
-    env, params = envmaps.make_envmap(kind, rng, h, 2 * h, spp=32, threads=_THREADS)
+    env, record = make()
     write_exr(layout.envmap(i), env)
     write_png(layout.envmap_png(i), env / (1 + env))
-    _write_json(marker, dict(index=i, kind=kind, params=params, shape=list(env.shape),
-                             seed=seed_for(cfg, _ENV, i, 1), seconds=time.perf_counter() - t0))
+    _write_json(layout.envmap_json(i), dict(index=i, **record, shape=list(env.shape),
+                                            seconds=time.perf_counter() - t0))
     return dict(kind="envmap", index=i, skipped=False, seconds=time.perf_counter() - t0)
+
+
+def task_envmap(out: str, cfg: Config, i: int, kind: str) -> dict:
+    """Procedural env map ``i`` (an outdoor sky or an indoor room)."""
+    def make():
+        from . import envmaps
+
+        rng = np.random.default_rng(seed_for(cfg, _ENV, i, 1))
+        h = cfg.envmap_height
+        env, params = envmaps.make_envmap(kind, rng, h, 2 * h, spp=32, threads=_THREADS)
+        return env, dict(kind=kind, params=params, seed=seed_for(cfg, _ENV, i, 1))
+    return _task_envmap(out, i, make)
 
 
 def task_envmap_file(out: str, cfg: Config, i: int, source: dict) -> dict:
     """Env map ``i`` from one of your files: resampled to the dataset's size (area average)."""
-    from dibrpp.io import write_exr, write_png
+    def make():
+        from .envmap_files import load_envmap_source
 
-    from .envmap_files import load_envmap_source
-
-    layout = DatasetLayout(out)
-    marker = layout.envmap_json(i)
-    if marker.exists():
-        return dict(kind="envmap", index=i, skipped=True)
-    t0 = time.perf_counter()
-    env = load_envmap_source(cfg.envmaps_dir, source, cfg.envmap_height)
-    write_exr(layout.envmap(i), env)
-    write_png(layout.envmap_png(i), env / (1 + env))
-    _write_json(marker, dict(index=i, kind="file", source=source, shape=list(env.shape),
-                             resampling="area average over solid angle (energy preserving)",
-                             seconds=time.perf_counter() - t0))
-    return dict(kind="envmap", index=i, skipped=False, seconds=time.perf_counter() - t0)
+        env = load_envmap_source(cfg.envmaps_dir, source, cfg.envmap_height)
+        return env, dict(kind="file", source=source, resampling="area average over solid angle (energy preserving)")
+    return _task_envmap(out, i, make)
 
 
 def task_object(out: str, cfg: Config, i: int, info: dict) -> dict:

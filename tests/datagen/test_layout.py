@@ -28,7 +28,8 @@ def test_paths_follow_the_documented_tree(tmp_path):
     assert rel(lay.timing(1, 4)) == "timing/shard_1_of_4.json"
     assert [rel(p) for p in (lay.envmap(7), lay.envmap_png(7), lay.envmap_json(7))] == [
         "envmaps/env_0007.exr", "envmaps/env_0007.png", "envmaps/env_0007.json"]
-    assert [rel(p) for p in (lay.mesh_npz(3), lay.mesh_obj(3), lay.mesh_mtl(3), lay.texture(3), lay.object_json(3))] == [
+    obj_files = (lay.mesh_npz(3), lay.mesh_obj(3), lay.mesh_mtl(3), lay.texture(3), lay.object_json(3))
+    assert [rel(p) for p in obj_files] == [
         f"objects/obj_0003/{n}" for n in ("mesh.npz", "mesh.obj", "mesh.mtl", "texture.png", "object.json")]
     assert rel(lay.sample_json(3, 12)) == "samples/obj_0003_env_0012/sample.json"
     views = [lay.view_image(3, 12, 5), lay.view_image(3, 12, 5, srgb=True), lay.view_mask(3, 12, 5),
