@@ -101,7 +101,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     return per_view, rows
 
 
-VARIANT_FIELDS = ("texture", "light_colour")  # model choices a run may change (ablations)
+VARIANT_FIELDS = ("texture", "light_colour", "visibility")  # model choices a run may change (ablations)
 
 
 def run_variant(config: TrainConfig) -> str:

@@ -55,6 +55,7 @@ class TrainConfig:
     predict_metallic: bool = False
     texture: str = "projected"  # projected | global (ModelConfig.texture)
     light_colour: str = "white"  # white | free (ModelConfig.light_colour)
+    visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # SG shading through torch.compile (falls back to eager where it cannot)
 
@@ -128,7 +129,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
     terms = {
         "image": image_l1(rgb, target_rgb, target[..., 3]),
-        "iou": soft_iou_loss(out.alpha, target[..., 3]),
+        "iou": soft_iou_loss(out.silhouette, target[..., 3]),
         "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
@@ -203,8 +204,8 @@ def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
 
 
 def make_renderer(config: TrainConfig, seed: int) -> Renderer:
-    return Renderer(config.shading, spp=config.spp, seed=seed, raster_settings=RasterSettings(cull_backfaces=True),
-                    compile=config.compile)
+    return Renderer(config.shading, spp=config.spp, seed=seed,
+                    raster_settings=RasterSettings(cull_backfaces=True, visibility=config.visibility), compile=config.compile)
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
@@ -331,6 +332,8 @@ def main(argv=None) -> int:
                     help="albedo looked up from the input view (default) or decoded from the global code")
     ap.add_argument("--light-colour", choices=("white", "free"), default=None,
                     help="white-balanced light (default) or light of any colour")
+    ap.add_argument("--visibility", choices=("dibr", "edge_aa"), default=None,
+                    help="silhouette gradient: DIB-R's soft silhouette (default) or antialiased edges (Sec. F.1)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
