@@ -30,8 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texture-size", type=int)
     p.add_argument("--envmap-height", type=int, help="env map height (width is twice that)")
     p.add_argument("--max-bounces", type=int)
-    p.add_argument("--denoise", action="store_true",
-                   help="denoise the shaded renders with OpenImageDenoise (albedo + normal guides); off by default")
+    p.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=None,
+                   help="denoise the shaded renders with OpenImageDenoise (albedo + normal guides); default: on for "
+                        "the diffuse set (64 spp), off for the others")
     p.add_argument("--grid", type=int, help="marching-cubes grid of the procedural shapes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=2, help="worker processes (bpy is not thread-safe)")
@@ -54,7 +55,7 @@ def main(argv=None) -> int:
                           spp=args.spp, seed=args.seed, texture_size=args.texture_size,
                           envmap_height=args.envmap_height, max_bounces=args.max_bounces,
                           grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
-                          denoise=args.denoise or None)
+                          denoise=args.denoise)
         shard = parse_shard(args.shard)
         if args.workers <= 0:
             raise ValueError("--workers must be >= 1")
