@@ -84,3 +84,19 @@ def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tin
     with pytest.raises(FloatingPointError, match="total loss became nan"):
         train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8, w_gradient=float("nan")), resume=True, progress=False)
     assert (out / "checkpoint.pt").read_bytes() == before
+
+
+@pytest.mark.slow
+def test_paper_presets_generate_and_train(tmp_path):
+    """What a GPU user runs first: one sample of the paper-size dataset and two paper-preset iterations."""
+    pytest.importorskip("bpy")
+    data = tmp_path / "glossy"
+    subprocess.run([sys.executable, "-m", "datagen", "--dataset", "glossy", "--out", str(data), "--preset", "paper",
+                    "--num-objects", "1", "--num-envmaps", "1", "--envs-per-object", "1", "--views", "2",
+                    "--workers", "1", "--no-preview", "--quiet"], check=True, capture_output=True, timeout=1200)
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "pipelines.train", "--preset", "paper", "--dataset", str(data),
+                        "--out", str(out), "--iterations", "2", "--no-progress"], capture_output=True, text=True, timeout=1200)
+    assert r.returncode == 0, r.stderr[-2000:]
+    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    assert state["iteration"] == 2 and state["model_config"]["image_size"] == 256
