@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test test-fast bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
+.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
@@ -30,6 +30,7 @@ help:
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
+	@echo "make train-variants   glossy SG ablations of our model: free light colour, global texture, edge antialiasing (F.1)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -89,6 +90,15 @@ train-ablations: $(VENV)/.installed
 	@set -e; for k in 4 8 16; do \
 	  $(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --lobes $$k --seed 0 --out $(RUNS)/glossy/sg-k$$k-seed0 --resume $(TRAIN_ARGS); \
 	done
+
+# Ablations of our model choices (glossy SG): light of any colour instead of white-balanced, the texture
+# decoded from the global code instead of looked up in the input, and nvdiffrast-style edge antialiasing
+# instead of DIB-R's soft silhouette (the paper's Sec. F.1).
+train-variants: $(VENV)/.installed
+	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --texture global --out $(RUNS)/glossy/sg-global-texture-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --visibility edge_aa --out $(RUNS)/glossy/sg-edge-aa-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed
