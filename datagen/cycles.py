@@ -324,12 +324,18 @@ def _make_mesh_object(verts, faces, uvs=None, face_uvs=None, smooth=True):
     return obj
 
 
+def _empty_node_tree(owner):
+    """(nodes, links) of a new material's or world's node tree, emptied of Blender's default nodes."""
+    nodes, links = owner.node_tree.nodes, owner.node_tree.links
+    for n in list(nodes):
+        nodes.remove(n)
+    return nodes, links
+
+
 def _make_material(obj, m: PrincipledMaterial, *, albedo_aov: bool, has_uvs: bool):
     bpy = _bpy()
     mat = bpy.data.materials.new("material")
-    nodes, links = mat.node_tree.nodes, mat.node_tree.links
-    for n in list(nodes):
-        nodes.remove(n)
+    nodes, links = _empty_node_tree(mat)
     out = nodes.new("ShaderNodeOutputMaterial")
     out.target = "CYCLES"
     out.name = "output"
@@ -395,9 +401,7 @@ def make_world(envmap):
     Environment Texture node with default mapping at strength 1; returns (world, environment node)."""
     bpy = _bpy()
     world = bpy.data.worlds.new("world")
-    nodes, links = world.node_tree.nodes, world.node_tree.links
-    for n in list(nodes):
-        nodes.remove(n)
+    nodes, links = _empty_node_tree(world)
     out = nodes.new("ShaderNodeOutputWorld")
     bg = nodes.new("ShaderNodeBackground")
     bg.inputs["Strength"].default_value = 1.0

@@ -112,6 +112,21 @@ def icosphere(subdivisions: int = 3, radius: float = 1.0, device=None) -> Meshes
     return Meshes(verts, faces, uvs, face_uvs).to(device)
 
 
+def torus(major=0.7, minor=0.3, nu=48, nv=24) -> Meshes:
+    """A closed, consistently wound torus around +Z, outward-facing (non-convex: its outline has
+    T-junctions; the silhouette tests use it)."""
+    u = torch.arange(nu) * 2 * math.pi / nu
+    v = torch.arange(nv) * 2 * math.pi / nv
+    uu, vv = torch.meshgrid(u, v, indexing="ij")
+    ring = major + minor * torch.cos(vv)
+    verts = torch.stack([ring * torch.cos(uu), ring * torch.sin(uu), minor * torch.sin(vv)], -1).reshape(-1, 3)
+    i, j = torch.arange(nu)[:, None], torch.arange(nv)[None, :]
+    a, b = i * nv + j, (i + 1) % nu * nv + j
+    c, d = (i + 1) % nu * nv + (j + 1) % nv, i * nv + (j + 1) % nv
+    faces = torch.cat([torch.stack([a, b, c], -1).reshape(-1, 3), torch.stack([a, c, d], -1).reshape(-1, 3)])
+    return Meshes(verts, faces)
+
+
 def uniform_laplacian(faces: torch.Tensor, num_verts: int) -> torch.Tensor:
     """Sparse (V, V) uniform Laplacian L = I - D^-1 A; L @ verts is each vertex minus its neighbours' mean."""
     e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 0)

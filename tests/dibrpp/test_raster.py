@@ -5,7 +5,7 @@ import torch
 
 from dibrpp import Material, Renderer
 from dibrpp.camera import Cameras
-from dibrpp.mesh import Meshes, icosphere
+from dibrpp.mesh import Meshes, icosphere, torus
 from dibrpp.raster import DIBR_SOFT_WIDTH_PX, RasterSettings, edge_response, rasterize, sample_texture
 
 
@@ -158,20 +158,6 @@ def test_texture_sampling_is_bilinear_and_differentiable():
 
 
 # ----------------------------------------------------------------------------- silhouettes: soft mask, coverage
-
-def torus(major=0.7, minor=0.3, nu=48, nv=24) -> Meshes:
-    """A closed, consistently wound torus around +Z (non-convex: its outline has T-junctions)."""
-    u = torch.arange(nu) * 2 * math.pi / nu
-    v = torch.arange(nv) * 2 * math.pi / nv
-    uu, vv = torch.meshgrid(u, v, indexing="ij")
-    ring = major + minor * torch.cos(vv)
-    verts = torch.stack([ring * torch.cos(uu), ring * torch.sin(uu), minor * torch.sin(vv)], -1).reshape(-1, 3)
-    i, j = torch.arange(nu)[:, None], torch.arange(nv)[None, :]
-    a, b = i * nv + j, (i + 1) % nu * nv + j
-    c, d = (i + 1) % nu * nv + (j + 1) % nv, i * nv + (j + 1) % nv
-    faces = torch.cat([torch.stack([a, b, c], -1).reshape(-1, 3), torch.stack([a, c, d], -1).reshape(-1, 3)])
-    return Meshes(verts, faces)
-
 
 def blackman_harris_cdf_2d(s: torch.Tensor, angle: float, n: int = 1500) -> torch.Tensor:
     """Numerical edge response of Cycles' separable Blackman-Harris filter (width 1.5 px, spanning 3 px)."""

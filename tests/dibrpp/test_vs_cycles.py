@@ -15,7 +15,7 @@ import torch
 from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere
 from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.lights import EnvMap, fit_sg_to_envmap, project_envmap_to_sh
-from dibrpp.mesh import Meshes
+from dibrpp.mesh import Meshes, torus
 
 cycles = pytest.importorskip("datagen.cycles")
 pytestmark = pytest.mark.cycles
@@ -179,20 +179,6 @@ def test_textured_nonconvex_mesh_albedo_matches_cycles_aov(tmp_path):
 # ----------------------------------------------------------------------------- the image alpha
 
 ALPHA_SPP = 64  # Cycles' own alpha noise on the edge band: ~0.01 mean absolute at 64 spp, ~0.002 at 256
-
-
-def torus(major=0.7, minor=0.3, nu=48, nv=24) -> Meshes:
-    """A closed, consistently wound torus around +Z (non-convex: its outline has T-junctions)."""
-    u = torch.arange(nu) * 2 * math.pi / nu
-    v = torch.arange(nv) * 2 * math.pi / nv
-    uu, vv = torch.meshgrid(u, v, indexing="ij")
-    ring = major + minor * torch.cos(vv)
-    verts = torch.stack([ring * torch.cos(uu), ring * torch.sin(uu), minor * torch.sin(vv)], -1).reshape(-1, 3)
-    i, j = torch.arange(nu)[:, None], torch.arange(nv)[None, :]
-    a, b = i * nv + j, (i + 1) % nu * nv + j
-    c, d = (i + 1) % nu * nv + (j + 1) % nv, i * nv + (j + 1) % nv
-    faces = torch.cat([torch.stack([a, b, c], -1).reshape(-1, 3), torch.stack([a, c, d], -1).reshape(-1, 3)])
-    return Meshes(verts, faces)
 
 
 def alpha_errors(ours: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
