@@ -64,29 +64,51 @@ PROBES = {  # Principled parameters of the probe spheres (albedo, roughness, met
     "metal": (0.9, 0.4, 1.0, 0.5),
     "mirror": (1.0, 0.0, 1.0, 0.5),
 }
-PROBE_DISTANCE = 4.0  # camera distance to the unit probe sphere (it fills most of the frame at 40 deg)
 
 
-def probe_renders(light, world_to_camera: torch.Tensor, resolution: int = 32, spp: int = 64, seed: int = 0) -> dict:
-    """{probe: (B, H, W, 4) linear RGBA} of the unit probe spheres at the origin under ``light`` (world
-    frame), seen with the rotations of ``world_to_camera`` (B, 4, 4); Monte-Carlo with MIS, fixed seed."""
-    from dibrpp import Cameras, Material, Renderer, icosphere
-    from dibrpp.lights import EnvMap
+def probe_renders(light, world_to_camera: torch.Tensor, resolution: int = 32, env_height: int = 32) -> dict:
+    """{probe: (B, H, W, 4) linear RGBA} of unit probe spheres seen orthographically along the viewing
+    axes of ``world_to_camera`` (B, 4, 4), under ``light`` (EnvMap, SGLight or SHLight; world frame).
 
-    if not isinstance(light, EnvMap):  # SG / SH: tabulated (SH's negative ringing clipped, as no light is negative)
-        light = EnvMap(light.to_envmap(64, 128).image.clamp_min(0))
+    Noise-free: the diffuse and rough-metal spheres sum dibrpp's BRDF (times cosine) against every texel of
+    the light tabulated as an ``env_height`` x 2 ``env_height`` map (area-averaged from 64 x 128, so a sun
+    is not missed); the mirror (metal, albedo 1, so Fresnel is 1) shows the light in the reflected direction.
+    """
+    from dibrpp.brdf import ShadingPoint, alpha_from_roughness
+    from dibrpp.conventions import equirect_directions
+
     b = world_to_camera.shape[0]
-    w2c = torch.eye(4, dtype=world_to_camera.dtype).repeat(b, 1, 1)
-    w2c[:, :3, :3] = world_to_camera[:, :3, :3]
-    w2c[:, 2, 3] = -PROBE_DISTANCE
-    cams = Cameras(w2c, torch.full((b,), math.radians(40.0)), resolution)
-    sphere = icosphere(4).expand(b)
-    renderer = Renderer("mc", spp=spp, seed=seed)
-    frags = renderer.rasterize(sphere, cams)
+    rot = world_to_camera[:, :3, :3].float()
+    xs = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
+    y, x = torch.meshgrid(-xs, xs, indexing="ij")  # row 0 at the top
+    inside = (x * x + y * y) < 1
+    n_cam = torch.stack([x, y, torch.sqrt((1 - x * x - y * y).clamp_min(0))], -1)[inside]  # (P, 3), +Z to the viewer
+    normal = n_cam @ rot  # camera -> world: R^T n, in row-vector form n R
+    view = rot[:, 2].unsqueeze(1).expand_as(normal)  # the camera's +Z axis (towards the viewer) in the world
+    table = light.to_envmap(64, 128).image.clamp_min(0)  # SH rings can dip below 0; no light is negative
+    table = torch.nn.functional.adaptive_avg_pool2d(table.permute(0, 3, 1, 2), (env_height, 2 * env_height)).permute(0, 2, 3, 1)
+    dirs = equirect_directions(env_height, 2 * env_height).reshape(-1, 3)
+    theta = (torch.arange(env_height) + 0.5) * math.pi / env_height
+    solid = (math.pi / env_height) * (math.pi / env_height) * torch.sin(theta).repeat_interleave(2 * env_height)
+    radiance = table.reshape(b, -1, 3) * solid.view(1, -1, 1)  # (B, T, 3) radiance x solid angle
     out = {}
     for name, (albedo, roughness, metallic, specular) in PROBES.items():
-        mat = Material(albedo=torch.full((1, 3), albedo), roughness=roughness, metallic=metallic, specular=specular)
-        out[name] = renderer(sphere, cams, mat, light, frags).image
+        if name == "mirror":
+            reflect = 2 * (normal * view).sum(-1, keepdim=True) * normal - view
+            rgb = light.eval(reflect).clamp_min(0)
+        else:
+            rgb = []
+            for k in range(b):  # one view at a time: (P, T, 3) BRDF values
+                p = normal.shape[1]
+                pt = ShadingPoint(normal=normal[k], view=view[k], albedo=torch.full((p, 3), albedo),
+                                  alpha=alpha_from_roughness(torch.full((p,), roughness)),
+                                  metallic=torch.full((p,), float(metallic)), specular=torch.full((p,), float(specular)))
+                f = pt.eval(dirs.unsqueeze(0).expand(p, -1, -1))
+                rgb.append((f * radiance[k].unsqueeze(0)).sum(1))
+            rgb = torch.stack(rgb)
+        image = torch.zeros(b, resolution, resolution, 4)
+        image[:, inside] = torch.cat([rgb, torch.ones_like(rgb[..., :1])], -1)
+        out[name] = image
     return out
 
 
@@ -148,14 +170,14 @@ def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 SUN_FRACTION = 0.2
 
 
-def light_metrics(pred_light, gt_env, world_to_camera: torch.Tensor, resolution: int = 32, spp: int = 64) -> dict:
+def light_metrics(pred_light, gt_env, world_to_camera: torch.Tensor, resolution: int = 32) -> dict:
     """Per-view light metrics (name -> (B,)) of a predicted light against the GT env map, both in the world
     frame (an EnvMap, SGLight or SHLight): si-RMSE of the three probes, the colour angle of the diffuse probe (the irradiance's colour) and
     the angle between the dominant light directions (NaN where the GT map has no dominant light)."""
     from dibrpp.lights import EnvMap
 
-    gt = probe_renders(gt_env, world_to_camera, resolution, spp)
-    pred = probe_renders(pred_light, world_to_camera, resolution, spp)
+    gt = probe_renders(gt_env, world_to_camera, resolution)
+    pred = probe_renders(pred_light, world_to_camera, resolution)
     out = {f"probe_{k}": si_rmse(pred[k], gt[k]) for k in PROBES}
     out["colour_deg"] = colour_angle_deg(mean_colour(pred["diffuse"]), mean_colour(gt["diffuse"]))
     gt_img = gt_env.image if isinstance(gt_env, EnvMap) else gt_env.to_envmap(64, 128).image

@@ -117,3 +117,15 @@ def test_direction_is_undefined_without_a_dominant_light():
 
     flat = EnvMap(torch.ones(1, 16, 32, 3))
     assert torch.isnan(metrics.light_metrics(flat, flat, torch.eye(4)[None])["direction_deg"]).all()
+
+
+def test_probes_in_a_white_furnace():
+    """Under a constant unit light the diffuse probe shows its albedo, the mirror 1, the rough metal at most its albedo."""
+    from dibrpp.lights import EnvMap
+
+    r = metrics.probe_renders(EnvMap(torch.ones(1, 16, 32, 3)), torch.eye(4)[None])
+    inside = r["diffuse"][0, ..., 3] > 0
+    assert torch.allclose(r["diffuse"][0][inside][:, :3], torch.tensor(0.8), atol=0.01)
+    assert torch.allclose(r["mirror"][0][inside][:, :3], torch.tensor(1.0), atol=1e-5)
+    metal = r["metal"][0][inside][:, :3]
+    assert metal.max() <= 0.9 + 0.01 and metal.mean() > 0.75
