@@ -78,8 +78,9 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
                 # reference: what the light metric gives a constant env map (no prediction at all)
                 "light_constant": metrics.ncc_loss(torch.ones_like(env), env)}
     gt_light = EnvMap(env)
-    per_view.update(metrics.light_metrics(light, gt_light, cams.world_to_camera))
-    constant = metrics.light_metrics(EnvMap(torch.ones_like(env[:, :8, :16])), gt_light, cams.world_to_camera)
+    probes = metrics.ProbeScene(cams.world_to_camera)
+    per_view.update(metrics.light_metrics(light, gt_light, probes))
+    constant = metrics.light_metrics(EnvMap(torch.ones_like(env[:, :8, :16])), gt_light, probes)
     # a constant map has no direction: its reference is the guess "the light comes from straight above"
     up = torch.tensor([0.0, 0.0, 1.0]).expand(len(env), 3)
     d_gt, frac = metrics.dominant_direction(env)
@@ -90,7 +91,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     if figure:
         novel = [display_srgb(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
         # probes scaled like the metric (best scale against the GT), so what is compared is what is shown
-        probe, probe_gt = (metrics.probe_renders(lt, cams.world_to_camera, resolution=64)["metal"] for lt in (light, gt_light))
+        shown = metrics.ProbeScene(cams.world_to_camera, resolution=64)
+        probe, probe_gt = (shown.render(lt)["metal"] for lt in (light, gt_light))
         scale = metrics.si_scale(probe, probe_gt).view(-1, 1, 1, 1)
         exposure = 0.5 / metrics.mean_colour(probe_gt).mean(-1).clamp_min(1e-8).view(-1, 1, 1, 1)
         rows = [[display_srgb(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_srgb(out.rgb[k]), display_srgb(albedo[k]),

@@ -66,50 +66,59 @@ PROBES = {  # Principled parameters of the probe spheres (albedo, roughness, met
 }
 
 
-def probe_renders(light, world_to_camera: torch.Tensor, resolution: int = 32, env_height: int = 32) -> dict:
-    """{probe: (B, H, W, 4) linear RGBA} of unit probe spheres seen orthographically along the viewing
-    axes of ``world_to_camera`` (B, 4, 4), under ``light`` (EnvMap, SGLight or SHLight; world frame).
+class ProbeScene:
+    """Unit probe spheres seen orthographically along the viewing axes of ``world_to_camera`` (B, 4, 4),
+    rendered under any light by :meth:`render`.
 
     Noise-free: the diffuse and rough-metal spheres sum dibrpp's BRDF (times cosine) against every texel of
-    the light tabulated as an ``env_height`` x 2 ``env_height`` map (area-averaged from 64 x 128, so a sun
-    is not missed); the mirror (metal, albedo 1, so Fresnel is 1) shows the light in the reflected direction.
+    the light tabulated as an ``env_height`` x 2 ``env_height`` map (area-averaged from 64 x 128, so a sun is
+    not missed); the mirror (metal, albedo 1, so Fresnel is 1) shows the light in the reflected direction.
+    The BRDF weights depend on the views only, so they are computed once for all lights compared.
     """
-    from dibrpp.brdf import ShadingPoint, alpha_from_roughness
-    from dibrpp.conventions import equirect_directions
 
-    b = world_to_camera.shape[0]
-    rot = world_to_camera[:, :3, :3].float()
-    xs = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
-    y, x = torch.meshgrid(-xs, xs, indexing="ij")  # row 0 at the top
-    inside = (x * x + y * y) < 1
-    n_cam = torch.stack([x, y, torch.sqrt((1 - x * x - y * y).clamp_min(0))], -1)[inside]  # (P, 3), +Z to the viewer
-    normal = n_cam @ rot  # camera -> world: R^T n, in row-vector form n R
-    view = rot[:, 2].unsqueeze(1).expand_as(normal)  # the camera's +Z axis (towards the viewer) in the world
-    table = light.to_envmap(64, 128).image.clamp_min(0)  # SH rings can dip below 0; no light is negative
-    table = torch.nn.functional.adaptive_avg_pool2d(table.permute(0, 3, 1, 2), (env_height, 2 * env_height)).permute(0, 2, 3, 1)
-    dirs = equirect_directions(env_height, 2 * env_height).reshape(-1, 3)
-    theta = (torch.arange(env_height) + 0.5) * math.pi / env_height
-    solid = (math.pi / env_height) * (math.pi / env_height) * torch.sin(theta).repeat_interleave(2 * env_height)
-    radiance = table.reshape(b, -1, 3) * solid.view(1, -1, 1)  # (B, T, 3) radiance x solid angle
-    out = {}
-    for name, (albedo, roughness, metallic, specular) in PROBES.items():
-        if name == "mirror":
-            reflect = 2 * (normal * view).sum(-1, keepdim=True) * normal - view
-            rgb = light.eval(reflect).clamp_min(0)
-        else:
-            rgb = []
-            for k in range(b):  # one view at a time: (P, T, 3) BRDF values
-                p = normal.shape[1]
-                pt = ShadingPoint(normal=normal[k], view=view[k], albedo=torch.full((p, 3), albedo),
-                                  alpha=alpha_from_roughness(torch.full((p,), roughness)),
-                                  metallic=torch.full((p,), float(metallic)), specular=torch.full((p,), float(specular)))
-                f = pt.eval(dirs.unsqueeze(0).expand(p, -1, -1))
-                rgb.append((f * radiance[k].unsqueeze(0)).sum(1))
-            rgb = torch.stack(rgb)
-        image = torch.zeros(b, resolution, resolution, 4)
-        image[:, inside] = torch.cat([rgb, torch.ones_like(rgb[..., :1])], -1)
-        out[name] = image
-    return out
+    def __init__(self, world_to_camera: torch.Tensor, resolution: int = 24, env_height: int = 24):
+        from dibrpp.brdf import ShadingPoint, alpha_from_roughness
+        from dibrpp.conventions import equirect_directions
+
+        self.batch, self.resolution, self.env_height = world_to_camera.shape[0], resolution, env_height
+        rot = world_to_camera[:, :3, :3].float()
+        xs = (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * 2 - 1
+        y, x = torch.meshgrid(-xs, xs, indexing="ij")  # row 0 at the top
+        self.inside = (x * x + y * y) < 1
+        n_cam = torch.stack([x, y, torch.sqrt((1 - x * x - y * y).clamp_min(0))], -1)[self.inside]  # +Z: to the viewer
+        self.normal = n_cam @ rot  # camera -> world is R^T n, in row-vector form n R
+        self.view = rot[:, 2].unsqueeze(1).expand_as(self.normal)  # the camera's +Z axis in the world
+        dirs = equirect_directions(env_height, 2 * env_height).reshape(-1, 3)
+        theta = (torch.arange(env_height) + 0.5) * math.pi / env_height
+        solid = (math.pi / env_height) ** 2 * torch.sin(theta).repeat_interleave(2 * env_height)
+        p = self.normal.shape[1]
+        self.weights = {}  # probe -> (B, P, T, 3): BRDF x cosine x solid angle of each texel
+        for name, (albedo, roughness, metallic, specular) in PROBES.items():
+            if name == "mirror":
+                continue
+            self.weights[name] = torch.stack([ShadingPoint(
+                normal=self.normal[k], view=self.view[k], albedo=torch.full((p, 3), albedo),
+                alpha=alpha_from_roughness(torch.full((p,), roughness)), metallic=torch.full((p,), float(metallic)),
+                specular=torch.full((p,), float(specular))).eval(dirs.unsqueeze(0).expand(p, -1, -1))
+                for k in range(self.batch)]) * solid.view(1, 1, -1, 1)
+
+    def render(self, light) -> dict:
+        """{probe: (B, H, W, 4) linear RGBA} under ``light`` (EnvMap, SGLight or SHLight; world frame)."""
+        h = self.env_height
+        table = light.to_envmap(64, 128).image.clamp_min(0)  # SH rings can dip below 0; no light is negative
+        table = torch.nn.functional.adaptive_avg_pool2d(table.permute(0, 3, 1, 2), (h, 2 * h)).permute(0, 2, 3, 1)
+        radiance = table.reshape(self.batch, 1, -1, 3)
+        out = {}
+        for name in PROBES:
+            if name == "mirror":
+                reflect = 2 * (self.normal * self.view).sum(-1, keepdim=True) * self.normal - self.view
+                rgb = light.eval(reflect).clamp_min(0)
+            else:
+                rgb = (self.weights[name] * radiance).sum(2)
+            image = torch.zeros(self.batch, self.resolution, self.resolution, 4)
+            image[:, self.inside] = torch.cat([rgb, torch.ones_like(rgb[..., :1])], -1)
+            out[name] = image
+        return out
 
 
 def _foreground(pred_rgba, gt_rgba):
@@ -143,10 +152,10 @@ def mean_colour(rgba: torch.Tensor) -> torch.Tensor:
     return (rgba[..., :3] * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1)
 
 
-def dominant_direction(env: torch.Tensor, height: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """Main light direction of world-frame equirect maps (B, H, W, 3): the centre of the cell (of a
-    ``height`` x 2 ``height`` grid) that sends the most power, and the fraction of the total power it sends.
-    Returns ((B, 3) unit directions, (B,) fractions)."""
+def dominant_direction(env: torch.Tensor, height: int = 16, cone_deg: float = 20.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Main light direction of world-frame equirect maps (B, H, W, 3): the power-weighted mean direction of
+    the cells (of a ``height`` x 2 ``height`` grid) within ``cone_deg`` of the cell that sends the most power,
+    and the fraction of the total power that cell sends. Returns ((B, 3) unit directions, (B,) fractions)."""
     from dibrpp.conventions import equirect_directions
 
     b, h, w, _ = env.shape
@@ -154,9 +163,11 @@ def dominant_direction(env: torch.Tensor, height: int = 16) -> tuple[torch.Tenso
     theta = (torch.arange(h, dtype=env.dtype) + 0.5) * math.pi / h
     power = lum * torch.sin(theta).view(1, -1, 1)  # radiance x solid angle
     cells = torch.nn.functional.adaptive_avg_pool2d(power.unsqueeze(1), (height, 2 * height)).flatten(1)
+    grid = equirect_directions(height, 2 * height, dtype=env.dtype).reshape(-1, 3)
     best = cells.argmax(1)
-    dirs = equirect_directions(height, 2 * height, dtype=env.dtype).reshape(-1, 3)[best]
-    return dirs, cells.gather(1, best[:, None])[:, 0] / cells.sum(1).clamp_min(1e-30)
+    near = (grid[best] @ grid.T) >= math.cos(math.radians(cone_deg))  # (B, cells): a cone around the peak
+    mean = torch.nn.functional.normalize(((cells * near).unsqueeze(-1) * grid).sum(1), dim=-1)
+    return mean, cells.gather(1, best[:, None])[:, 0] / cells.sum(1).clamp_min(1e-30)
 
 
 def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -170,19 +181,15 @@ def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 SUN_FRACTION = 0.2
 
 
-def light_metrics(pred_light, gt_env, world_to_camera: torch.Tensor, resolution: int = 32) -> dict:
+def light_metrics(pred_light, gt_env, scene: "ProbeScene") -> dict:
     """Per-view light metrics (name -> (B,)) of a predicted light against the GT env map, both in the world
-    frame (an EnvMap, SGLight or SHLight): si-RMSE of the three probes, the colour angle of the diffuse probe (the irradiance's colour) and
-    the angle between the dominant light directions (NaN where the GT map has no dominant light)."""
-    from dibrpp.lights import EnvMap
-
-    gt = probe_renders(gt_env, world_to_camera, resolution)
-    pred = probe_renders(pred_light, world_to_camera, resolution)
+    frame (EnvMap, SGLight or SHLight), seen in the views of ``scene``: si-RMSE of the three probes, the
+    colour angle of the diffuse probe (the irradiance's colour) and the angle between the dominant light
+    directions (NaN where the GT map has no dominant light)."""
+    gt, pred = scene.render(gt_env), scene.render(pred_light)
     out = {f"probe_{k}": si_rmse(pred[k], gt[k]) for k in PROBES}
     out["colour_deg"] = colour_angle_deg(mean_colour(pred["diffuse"]), mean_colour(gt["diffuse"]))
-    gt_img = gt_env.image if isinstance(gt_env, EnvMap) else gt_env.to_envmap(64, 128).image
-    pred_img = pred_light.image if isinstance(pred_light, EnvMap) else pred_light.to_envmap(64, 128).image
-    d_gt, frac = dominant_direction(gt_img)
-    d_pred, _ = dominant_direction(pred_img)
+    d_gt, frac = dominant_direction(gt_env.to_envmap(64, 128).image)
+    d_pred, _ = dominant_direction(pred_light.to_envmap(64, 128).image)
     out["direction_deg"] = torch.where(frac >= SUN_FRACTION, angle_deg(d_pred, d_gt), torch.full_like(frac, float("nan")))
     return out

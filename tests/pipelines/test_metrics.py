@@ -76,11 +76,12 @@ def test_a_light_scores_zero_against_itself_and_ignores_its_intensity():
 
     env = _sun_map([0.6, 0.0, 0.8])
     w2c = torch.eye(4)[None]
-    same = metrics.light_metrics(EnvMap(env), EnvMap(env), w2c)
-    brighter = metrics.light_metrics(EnvMap(5.0 * env), EnvMap(env), w2c)
+    same = metrics.light_metrics(EnvMap(env), EnvMap(env), metrics.ProbeScene(w2c))
+    brighter = metrics.light_metrics(EnvMap(5.0 * env), EnvMap(env), metrics.ProbeScene(w2c))
     for k in ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg"):
-        assert same[k].abs().max() < 1e-4, k
-        assert brighter[k].abs().max() < 1e-3, k
+        tol = 0.5 if k == "direction_deg" else 1e-3  # degrees: acos near 1 in float32
+        assert same[k].abs().max() < tol, k
+        assert brighter[k].abs().max() < tol, k
 
 
 def test_a_constant_light_scores_worse_than_the_truth_and_a_tint_shows_in_the_colour_angle():
@@ -88,13 +89,13 @@ def test_a_constant_light_scores_worse_than_the_truth_and_a_tint_shows_in_the_co
 
     env = _sun_map([0.6, 0.0, 0.8])
     w2c = torch.eye(4)[None]
-    const = metrics.light_metrics(EnvMap(torch.ones(1, 8, 16, 3)), EnvMap(env), w2c)
+    const = metrics.light_metrics(EnvMap(torch.ones(1, 8, 16, 3)), EnvMap(env), metrics.ProbeScene(w2c))
     assert const["probe_metal"] > 0.3 and const["probe_diffuse"] > 0.1
     tint = torch.tensor([1.0, 1.0, 0.5])
-    tinted = metrics.light_metrics(EnvMap(env * tint), EnvMap(env), w2c)
+    tinted = metrics.light_metrics(EnvMap(env * tint), EnvMap(env), metrics.ProbeScene(w2c))
     want = math.degrees(math.acos(float(torch.nn.functional.cosine_similarity(
-        metrics.mean_colour(metrics.probe_renders(EnvMap(env), w2c)["diffuse"]),
-        metrics.mean_colour(metrics.probe_renders(EnvMap(env * tint), w2c)["diffuse"])))))
+        metrics.mean_colour(metrics.ProbeScene(w2c).render(EnvMap(env))["diffuse"]),
+        metrics.mean_colour(metrics.ProbeScene(w2c).render(EnvMap(env * tint))["diffuse"])))))
     assert tinted["colour_deg"].item() == pytest.approx(want, abs=0.05) and want > 5
 
 
@@ -106,7 +107,7 @@ def test_a_rotated_sun_gives_the_rotation_angle():
         t = math.radians(turn)  # the sun turned about +Z at the same elevation
         b = [a[0] * math.cos(t), a[0] * math.sin(t), a[2]]
         want = math.degrees(math.acos(sum(x * y for x, y in zip(a, b))))
-        got = metrics.light_metrics(EnvMap(_sun_map(b)), EnvMap(_sun_map(a)), torch.eye(4)[None])["direction_deg"]
+        got = metrics.light_metrics(EnvMap(_sun_map(b)), EnvMap(_sun_map(a)), metrics.ProbeScene(torch.eye(4)[None]))["direction_deg"]
         assert got.item() == pytest.approx(want, abs=8.0)  # one cell of the 16 x 32 grid is 11 degrees
 
 
@@ -116,14 +117,14 @@ def test_direction_is_undefined_without_a_dominant_light():
     from dibrpp.lights import EnvMap
 
     flat = EnvMap(torch.ones(1, 16, 32, 3))
-    assert torch.isnan(metrics.light_metrics(flat, flat, torch.eye(4)[None])["direction_deg"]).all()
+    assert torch.isnan(metrics.light_metrics(flat, flat, metrics.ProbeScene(torch.eye(4)[None]))["direction_deg"]).all()
 
 
 def test_probes_in_a_white_furnace():
     """Under a constant unit light the diffuse probe shows its albedo, the mirror 1, the rough metal at most its albedo."""
     from dibrpp.lights import EnvMap
 
-    r = metrics.probe_renders(EnvMap(torch.ones(1, 16, 32, 3)), torch.eye(4)[None])
+    r = metrics.ProbeScene(torch.eye(4)[None]).render(EnvMap(torch.ones(1, 16, 32, 3)))
     inside = r["diffuse"][0, ..., 3] > 0
     assert torch.allclose(r["diffuse"][0][inside][:, :3], torch.tensor(0.8), atol=0.01)
     assert torch.allclose(r["mirror"][0][inside][:, :3], torch.tensor(1.0), atol=1e-5)
