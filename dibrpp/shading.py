@@ -20,6 +20,7 @@ import torch
 
 from . import sg as sgmath
 from .brdf import ShadingPoint, geometry_term
+from .lights import _Light
 
 
 @dataclass
@@ -127,8 +128,6 @@ class _MCPlan:
         # lights are rebuilt around the function's inputs: a shallow copy with its tensors replaced. The env-map
         # sampling tables (from the detached image) are built once here and shared by every copy.
         self.light_fields: tuple[str, ...] = ()
-        from .lights import _Light  # noqa: PLC0415 (lights imports nothing from here; keep the module light)
-
         self.replayable = isinstance(light, _Light) and self.n_pix > 0
         if self.replayable:
             self.light_fields = tuple(n for n in light._tensors + ("world_to_light",) if getattr(light, n) is not None)
@@ -230,7 +229,7 @@ class _MCReplay(torch.autograd.Function):
                     got = torch.autograd.grad(part, wrt, grad_out, allow_unused=True)
                     for j, gr in zip(where, got):
                         if gr is not None:
-                            grads[j] = gr if grads[j] is None else grads[j].add_(gr)
+                            grads[j] = gr if grads[j] is None else grads[j] + gr
         return (None, *grads)
 
 
