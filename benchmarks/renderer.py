@@ -104,14 +104,15 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
     n_pix = int(frags.mask.sum())
     rows = []
     env = synthetic_envmap()
-    for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC", mc_ns)):
+    # MC: path replay (the default: memory flat in N) beside plain autograd (every sample's intermediates kept)
+    for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC", mc_ns), ("MC-plain", mc_ns)):
         for v in values:
             rough = torch.tensor([0.3], requires_grad=True)
             if kind.startswith("SG"):
                 shader, base = SGShader(compile=kind == "SG-compiled"), random_sg_light(v)
                 make_light = lambda b=base: SGLight(b.axis, b.sharpness, b.amplitude.clone().requires_grad_(True))  # noqa: E731
             else:
-                shader = MCShader(spp=v, mis=True, seed=0)
+                shader = MCShader(spp=v, mis=True, seed=0, replay=kind == "MC")
                 make_light = lambda: EnvMap(env.image.clone().requires_grad_(True))  # noqa: E731
 
             def run(backward: bool):
@@ -122,11 +123,11 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
                         out.sum().backward()
 
             for name, backward in (("forward", False), ("forward+backward", True)):
-                reps = repeats if (kind != "MC" or v <= 64) else 1
+                reps = repeats if (not kind.startswith("MC") or v <= 64) else 1
                 t, mem = measure(lambda: run(backward), reps, warmup=0 if reps == 1 else 1)
-                row = {"case": f"{kind} {'N' if kind == 'MC' else 'K'}={v}, {res}^2 sphere ({n_pix} px)", "pass": name,
-                       "ms": 1000 * t, "peak_mb": mem}
-                if kind != "MC" and not backward:
+                row = {"case": f"{kind} {'N' if kind.startswith('MC') else 'K'}={v}, {res}^2 sphere ({n_pix} px)",
+                       "pass": name, "ms": 1000 * t, "peak_mb": mem}
+                if not kind.startswith("MC") and not backward:
                     row["flop_bound_ms"] = 1000 * SG_FLOP_PER_PIXEL_LOBE * n_pix * v / peak_flops()
                 rows.append(row)
     return rows
@@ -164,7 +165,8 @@ def table_a(rows: list[dict]) -> str:
     for kind, sym in (("SG", "K"), ("MC", "N")):
         vals = list(PAPER_TABLE_A[kind])
         body = []
-        variants = ([("SG", "eager"), ("SG-compiled", "compiled")] if kind == "SG" else [("MC", "with MIS")])
+        variants = ([("SG", "eager"), ("SG-compiled", "compiled")] if kind == "SG"
+                    else [("MC", "with MIS, path replay"), ("MC-plain", "with MIS, plain autograd")])
         for prefix, label in variants:
             for pass_ in ("forward", "forward+backward"):
                 body.append([f"ours {label}, {pass_} (ms)"] + [value(f"{prefix} {sym}", v, pass_) for v in vals])
