@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
 import sys
 import time
@@ -23,6 +22,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from datagen.layout import CameraSetup, DatasetLayout
 from dibrpp import Cameras, RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path, write_png
 from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
@@ -176,9 +176,8 @@ def make_model(config: TrainConfig) -> Encoder:
 
 def dataset_camera_setup(dataset: str) -> dict:
     """The camera set-up of a dataset's views (orbit distance, elevation, field of view), from its manifest."""
-    cam = json.loads(Path(dataset, "manifest.json").read_text())["camera"]
-    return dict(distance=float(cam["distance"]), elevation_deg=float(cam["elevation_deg"]),
-                fov_deg=math.degrees(float(cam["fov"])))
+    setup = CameraSetup.from_manifest(json.loads(DatasetLayout(dataset).manifest.read_text()))
+    return dict(distance=setup.distance, elevation_deg=setup.elevation_deg, fov_deg=setup.fov_deg)
 
 
 def run_camera_setup(run: Path) -> dict:
