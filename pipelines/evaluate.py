@@ -56,7 +56,8 @@ METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC
 @torch.no_grad()
 def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) -> tuple[dict, list]:
     """Per-view metrics (name -> (B,) tensor) of a batch of test views and, with ``figure``, one figure
-    row per view (input, re-rendering, albedo and light ours vs GT, novel views with the light fixed in the world)."""
+    row per view (input, re-rendering, albedo and light ours vs GT, the rough-metal probe under both lights,
+    novel views with the light fixed in the world)."""
     b = collate(items)
     rgba = b["image"][:, 0]
     cams = b["cameras"]

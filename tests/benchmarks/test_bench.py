@@ -16,7 +16,8 @@ def test_renderer_benchmark_quick(tmp_path):
     assert all(float(r["ms"]) > 0 for r in rows)
     assert (tmp_path / "renderer.md").read_text().count("\n") == len(rows) + 2
     table_a = (tmp_path / "table_a.md").read_text()  # quick mode measures K, N in {1, 4}: the rest is blank
-    assert "| paper, GPU, forward (ms) | 2.6 |" in table_a and "| ours with MIS, forward (ms) | " in table_a
+    assert "| paper, GPU, forward (ms) | 2.6 |" in table_a and "| ours with MIS, path replay, forward (ms) | " in table_a
+    assert "| ours with MIS, plain autograd, forward+backward (ms) | " in table_a
 
 
 def test_training_benchmark_splits_an_iteration(tiny_glossy, tmp_path):
