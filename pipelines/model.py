@@ -203,7 +203,7 @@ class Encoder(nn.Module):
         self.register_buffer("texel_face", face)
         self.register_buffer("texel_bary", bary)
         n_verts = template.verts.shape[1]
-        self.shape_head = nn.Linear(512, n_verts * 3 + 3)  # offsets + per-axis log-scale
+        self.shape_head = nn.Linear(512, n_verts * 3 + 3)  # offsets + per-axis scale (a sigmoid onto scale_range)
         th, tw = c.texture_height // 8, c.texture_width // 8
         self.tex_fc = nn.Linear(512, 4 * w * th * tw)
         self.tex_dec = nn.Sequential(
@@ -223,7 +223,7 @@ class Encoder(nn.Module):
         c = self.config
         nn.init.zeros_(self.shape_head.weight)
         nn.init.zeros_(self.shape_head.bias)
-        with torch.no_grad():  # start at the template's radius: log-scale 0 <=> scale 1 in the middle of the range
+        with torch.no_grad():  # start at the template radius: the scale logit that gives scale 1
             lo, hi = c.scale_range
             self.shape_head.bias[-3:] = torch.logit(torch.tensor((1.0 - lo) / (hi - lo)))
         nn.init.normal_(self.light_head.weight, std=1e-3)
