@@ -102,10 +102,12 @@ class ProbeScene:
                 specular=torch.full((p,), float(specular))).eval(dirs.unsqueeze(0).expand(p, -1, -1))
                 for k in range(self.batch)]) * solid.view(1, 1, -1, 1)
 
-    def render(self, light) -> dict:
+    def render(self, light, table: torch.Tensor | None = None) -> dict:
         """{probe: (B, H, W, 4) linear RGBA} under ``light`` (EnvMap, SGLight or SHLight; world frame)."""
         h = self.env_height
-        table = light.to_envmap(64, 128).image.clamp_min(0)  # SH rings can dip below 0; no light is negative
+        if table is None:  # the light tabulated in the world frame, (B, 64, 128, 3)
+            table = light.to_envmap(64, 128).image
+        table = table.clamp_min(0)  # SH rings can dip below 0; no light is negative
         table = torch.nn.functional.adaptive_avg_pool2d(table.permute(0, 3, 1, 2), (h, 2 * h)).permute(0, 2, 3, 1)
         radiance = table.reshape(self.batch, 1, -1, 3)
         out = {}
@@ -186,10 +188,11 @@ def light_metrics(pred_light, gt_env, scene: "ProbeScene") -> dict:
     frame (EnvMap, SGLight or SHLight), seen in the views of ``scene``: si-RMSE of the three probes, the
     colour angle of the diffuse probe (the irradiance's colour) and the angle between the dominant light
     directions (NaN where the GT map has no dominant light)."""
-    gt, pred = scene.render(gt_env), scene.render(pred_light)
+    gt_table, pred_table = gt_env.to_envmap(64, 128).image, pred_light.to_envmap(64, 128).image
+    gt, pred = scene.render(gt_env, gt_table), scene.render(pred_light, pred_table)
     out = {f"probe_{k}": si_rmse(pred[k], gt[k]) for k in PROBES}
     out["colour_deg"] = colour_angle_deg(mean_colour(pred["diffuse"]), mean_colour(gt["diffuse"]))
-    d_gt, frac = dominant_direction(gt_env.to_envmap(64, 128).image)
-    d_pred, _ = dominant_direction(pred_light.to_envmap(64, 128).image)
+    d_gt, frac = dominant_direction(gt_table)
+    d_pred, _ = dominant_direction(pred_table)
     out["direction_deg"] = torch.where(frac >= SUN_FRACTION, angle_deg(d_pred, d_gt), torch.full_like(frac, float("nan")))
     return out
