@@ -28,6 +28,7 @@ help:
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
+	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-variants   glossy SG ablations of our model: free light colour, global texture, edge antialiasing (F.1)"
@@ -65,6 +66,14 @@ test-fast: $(VENV)/.installed
 
 data: $(addprefix data-,$(DATASETS))
 
+# The glossy cars under real, captured light: a folder of HDRIs (default: the eight CC0 Poly Haven maps that
+# ship with Blender) mixed with procedural maps, each kind split 4:1. Train it with
+# `make train-glossy-hdri METHODS=sg SEEDS=`.
+HDRIS ?= $(shell $(PY) -c "from datagen.envmap_files import blender_hdris; print(blender_hdris())" 2>/dev/null)
+data-glossy-hdri: $(VENV)/.installed
+	@test -n "$(HDRIS)" || { echo "error: no HDRI folder; set HDRIS=DIR (a folder of .exr / .hdr maps)"; exit 1; }
+	$(PY) -m datagen --dataset glossy --envmaps $(HDRIS) --procedural-envmaps 16 --num-objects 60 --out $(DATA)/glossy-hdri
+
 # Resumable: rerunning skips finished samples and redoes partial ones.
 data-%: $(VENV)/.installed
 	$(PY) -m datagen --dataset $* --out $(DATA)/$*
@@ -92,13 +101,16 @@ train-ablations: $(VENV)/.installed
 	done
 
 # Ablations of our model choices (glossy SG): light of any colour instead of white-balanced, the texture
-# decoded from the global code instead of looked up in the input, and nvdiffrast-style edge antialiasing
-# instead of DIB-R's soft silhouette (the paper's Sec. F.1).
+# decoded from the global code instead of looked up in the input, nvdiffrast-style edge antialiasing
+# instead of DIB-R's soft silhouette (the paper's Sec. F.1), light scales exponential in the head's output,
+# and that with the cross-view renders lit by another object's light under the same env map.
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --texture global --out $(RUNS)/glossy/sg-global-texture-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --visibility edge_aa --out $(RUNS)/glossy/sg-edge-aa-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --out $(RUNS)/glossy/sg-log-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --shared-light --out $(RUNS)/glossy/sg-shared-light-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

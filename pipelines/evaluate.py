@@ -104,7 +104,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     return per_view, rows
 
 
-VARIANT_FIELDS = ("texture", "light_colour", "visibility")  # model choices a run may change (ablations)
+VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light")  # model choices a run may change (ablations)
 
 
 def run_variant(config: TrainConfig) -> str:
@@ -115,12 +115,12 @@ def run_variant(config: TrainConfig) -> str:
 
 
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
-                 view_stride: int = 1) -> tuple[dict, dict]:
+                 view_stride: int = 1, split: str = "test") -> tuple[dict, dict]:
     """Mean metrics over the test views of the run's dataset (or ``dataset``; every ``view_stride``-th view
     of each sample), and figure rows:
     {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
     config, model, iteration = load_run(run)
-    ds = MultiViewDataset(dataset or config.dataset, split="test", views_per_item=1)
+    ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
     config.spp = eval_spp
     renderer = make_renderer(config, seed=0)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
@@ -136,7 +136,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
-                  view_stride=view_stride, variant=run_variant(config))
+                  view_stride=view_stride, variant=run_variant(config), split=split)
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
     worst = {k: views[int(per_view[k].argmax())] for k in (*METRICS, "probe_metal")}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)

@@ -35,7 +35,11 @@ from dibrpp.mesh import Meshes, icosphere, vertex_normals
 from dibrpp.sg import sg_integral
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
-MODEL_VERSION = 2  # bump when parameters or their meaning change: old checkpoints are refused
+MODEL_VERSION = 3  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
+MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
+# fields added since an older version, with the value that reproduces the model that version trained
+MIGRATIONS = {2: {"light_scale": "softplus"}}
 
 
 @dataclass
@@ -52,6 +56,10 @@ class ModelConfig:
     texture_width: int = 64
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
     light_colour: str = "white"  # white: white-balanced light | free: any colour
+    # softplus: SG sharpness / amplitude and env radiance grow linearly with the head's output | log: they are
+    # exp(output), so a step changes them by a factor and a sharp, bright sun is a few steps away (an ablation:
+    # it made one lobe dominant but did not improve the light metrics; README, "Light")
+    light_scale: str = "softplus"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -67,12 +75,16 @@ class ModelConfig:
             raise ValueError(f"texture must be 'projected' or 'global', got {self.texture!r}")
         if self.light_colour not in ("white", "free"):
             raise ValueError(f"light_colour must be 'white' or 'free', got {self.light_colour!r}")
+        if self.light_scale not in ("log", "softplus"):
+            raise ValueError(f"light_scale must be 'log' or 'softplus', got {self.light_scale!r}")
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
+        if d.get("version") in MIGRATIONS:
+            d = {**d, **MIGRATIONS[d["version"]], "version": MODEL_VERSION}
         if d.get("version") != MODEL_VERSION:
             raise ValueError(f"the checkpoint was written by model version {d.get('version')}, this code is version "
                              f"{MODEL_VERSION}; retrain it (e.g. `make train-glossy`) or check out the matching release")
@@ -239,12 +251,21 @@ class Encoder(nn.Module):
                 axes = torch.stack([torch.sqrt(1 - z * z) * torch.cos(phi), torch.sqrt(1 - z * z) * torch.sin(phi), z], -1)
                 b = self.light_head.bias.view(k, 7)
                 b[:, :3] = axes
-                b[:, 3] = math.log(math.expm1(max(2.0, 0.5 * k ** 0.5 * 4)))  # softplus^-1 of the sharpness
-                b[:, 4:] = -2.0
+                sharpness, amplitude = max(2.0, 0.5 * k ** 0.5 * 4), F.softplus(torch.tensor(-2.0))
+                b[:, 3], b[:, 4:] = self._inverse_positive(torch.tensor(sharpness)), self._inverse_positive(amplitude)
             elif kind == "sh":
                 self.light_head.bias.view(9, 3)[0] = 1.5  # ambient start
             else:
-                self.light_head.bias.fill_(-0.5)
+                self.light_head.bias.fill_(float(self._inverse_positive(F.softplus(torch.tensor(-0.5)))))
+
+    def _positive(self, raw: torch.Tensor) -> torch.Tensor:
+        """A light scale (SG sharpness or amplitude, env radiance) from a head output."""
+        if self.config.light_scale == "log":
+            return torch.exp(raw.clamp_max(MAX_LOG_RADIANCE))
+        return F.softplus(raw)
+
+    def _inverse_positive(self, value: torch.Tensor) -> torch.Tensor:
+        return value.log() if self.config.light_scale == "log" else value.expm1().log()
 
     def template(self) -> Meshes:
         return Meshes(self.template_dirs, self.faces, self.uvs, self.face_uvs)
@@ -307,12 +328,12 @@ class Encoder(nn.Module):
         if kind == "sg":
             raw = raw.view(b, c.lobes, 7)
             light = {"axis": F.normalize(raw[..., :3], dim=-1, eps=1e-6),
-                     "sharpness": F.softplus(raw[..., 3]) + 0.5,
-                     "amplitude": F.softplus(raw[..., 4:])}
+                     "sharpness": (self._positive(raw[..., 3]) + 0.5).clamp_max(MAX_SHARPNESS),
+                     "amplitude": self._positive(raw[..., 4:])}
         elif kind == "sh":
             light = {"coeffs": raw.view(b, 9, 3)}
         else:
-            light = {"image": F.softplus(raw.view(b, c.env_height, c.env_width, 3))}
+            light = {"image": self._positive(raw.view(b, c.env_height, c.env_width, 3))}
         if c.light_colour == "white":
             light = white_balance(light, kind, c.env_height)
         return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template())

@@ -55,6 +55,8 @@ class TrainConfig:
     predict_metallic: bool = False
     texture: str = "projected"  # projected | global (ModelConfig.texture)
     light_colour: str = "white"  # white | free (ModelConfig.light_colour)
+    light_scale: str = "softplus"  # softplus | log (ModelConfig.light_scale)
+    shared_light: bool = False  # cross-view renders lit by another object's light under the same env map
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # SG shading through torch.compile (falls back to eager where it cannot)
@@ -92,21 +94,38 @@ class TrainingData:
                 imgs.append(item["image"][0])
                 w2c.append(item["world_to_camera"][0])
                 fov.append(item["fov"][0])
+        self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
         self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
         self.fov = torch.stack(fov).view(n_samples, n_views)
         self.resolution = image_size
         self.num_samples, self.num_views = n_samples, n_views
 
-    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1) -> dict:
-        """The iteration's batch, a pure function of (seed, iteration, rank): resumes are exact."""
+    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1,
+              shared_light: bool = False) -> dict:
+        """The iteration's batch, a pure function of (seed, iteration, rank): resumes are exact.
+
+        With ``shared_light`` the second half of the batch are partners of the first: item k + size/2 is
+        another object lit by the same env map as item k (the item itself where a map lights one object);
+        ``partner`` (B,) gives each item's partner."""
         g = torch.Generator().manual_seed(seed * 1_000_003 + iteration)
         samples = torch.randint(self.num_samples, (size * world,), generator=g)[rank::world]
+        partner = torch.arange(len(samples))
+        if shared_light:
+            half = len(samples) // 2
+            anchors = samples[:half]
+            same_map = self.envmap_of_sample[anchors, None] == self.envmap_of_sample[None, :]  # (half, samples)
+            same_map[torch.arange(half), anchors] = False  # another object if there is one
+            same_map[~same_map.any(1), anchors[~same_map.any(1)]] = True
+            pick = torch.rand(same_map.shape, generator=g) * same_map
+            samples = torch.cat([anchors, pick.argmax(1), samples[2 * half:]])
+            partner[:half], partner[half:2 * half] = torch.arange(half, 2 * half), torch.arange(half)
         v1 = torch.randint(self.num_views, (size * world,), generator=g)[rank::world]
         v2 = (v1 + 1 + torch.randint(self.num_views - 1, (size * world,), generator=g)[rank::world]) % self.num_views
         views = torch.stack([v1, v2], 1)
         s = samples.unsqueeze(1).expand(-1, 2)
-        return dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views])
+        return dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
+                    sample=samples, partner=partner)
 
 
 # ----------------------------------------------------------------------------- one step
@@ -121,9 +140,17 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     # render prediction i (from view i) in view j with the light predicted from view j
     src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
     dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
+    lit_by = dst.clone()
+    if config.shared_light:
+        # ... but across views with the light predicted from the partner: another object under the same
+        # env map. One world light must then light both objects, so it cannot carry one object's blur or
+        # tint: what differs between them has to go to their materials.
+        partner = batch["partner"].repeat_interleave(4)
+        cross = src != dst
+        lit_by[cross] = 2 * partner[cross] + dst[cross] % 2
     cams = views[dst.tolist()]
     shape_pred = pred.select(src)
-    light = pred.select(dst).light(cams.world_to_camera)
+    light = pred.select(lit_by).light(views.world_to_camera[lit_by])
     out = renderer(shape_pred.meshes(), cams, shape_pred.material(), light)
     target = flat[dst]
     rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
@@ -171,7 +198,7 @@ def save_checkpoint(path: Path, model, opt, iteration: int, config: TrainConfig)
 def make_model(config: TrainConfig) -> Encoder:
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
                                predict_metallic=config.predict_metallic, texture=config.texture,
-                               light_colour=config.light_colour))
+                               light_colour=config.light_colour, light_scale=config.light_scale))
 
 
 def dataset_camera_setup(dataset: str) -> dict:
@@ -249,7 +276,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     t_start = time.perf_counter()
     for it in bar:
         renderer = make_renderer(config, seed=config.seed * 7919 + it)  # MC noise differs per iteration, reproducibly
-        batch = data.batch(it, config.batch_objects, config.seed, rank, world)
+        batch = data.batch(it, config.batch_objects, config.seed, rank, world, config.shared_light)
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
@@ -333,6 +360,11 @@ def main(argv=None) -> int:
                     help="white-balanced light (default) or light of any colour")
     ap.add_argument("--visibility", choices=("dibr", "edge_aa"), default=None,
                     help="silhouette gradient: DIB-R's soft silhouette (default) or antialiased edges (Sec. F.1)")
+    ap.add_argument("--light-scale", choices=("softplus", "log"), default=None,
+                    help="light sharpness and intensity linear (default) or exponential in the head's output")
+    ap.add_argument("--shared-light", action=argparse.BooleanOptionalAction, default=None,
+                    help="light the cross-view renders with the light predicted for another object under the same "
+                         "env map (default: off)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)

@@ -240,3 +240,15 @@ def test_too_few_maps_and_bad_counts_say_what_to_do(tmp_path):
     assert G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=1, envs_per_object=2).num_envmaps == 2
     with pytest.raises(ValueError, match="--procedural-envmaps must be >= 0"):
         G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=-1)
+
+
+def test_compression_noise_below_zero_is_accepted_and_becomes_zero(tmp_path):
+    """Lossy EXRs (DWA, as Blender's bundled maps) hold values a hair below 0; a real negative is refused."""
+    img = smooth_map(4)
+    img[1, 2, 0] = -0.01 * img.mean()
+    EF.check_envmap("noisy.exr", img)
+    assert EF.resample_equirect(img, 2).min() >= 0
+    img[1, 2, 0] = -0.5 * img.mean()
+    with pytest.raises(EF.EnvmapError, match="negative"):
+        EF.check_envmap("broken.exr", img)
+

@@ -47,6 +47,26 @@ def test_free_light_keeps_its_colour():
     assert amp[0, 0, 0] > amp[0, 0, 2] * 2
 
 
+@pytest.mark.parametrize("kind", ["sg", "mc"])
+def test_light_scales_are_logarithmic_so_a_sun_is_reachable(kind):
+    """A change of the head's output by 5 multiplies a lobe's sharpness and amplitude (an env texel's
+    radiance) by e^5 ~ 150: a sun ~1 degree wide and 1000x brighter than the sky is a few steps away, where
+    softplus scales (version 2) only add 5."""
+    reach = {}
+    for scale in ("log", "softplus"):
+        model = Encoder(ModelConfig(shading=kind, lobes=4, image_size=32, light_scale=scale, light_colour="free"))
+        values = []
+        for shift in (0.0, 5.0):
+            with torch.no_grad():
+                model.light_head.weight.zero_()
+                model.light_head.bias.add_(shift)
+            p = model(torch.rand(1, 4, 32, 32), _cams(1)).light_params
+            values.append(torch.cat([p["sharpness"].flatten(), p["amplitude"].flatten()]) if kind == "sg"
+                          else p["image"].flatten())
+        reach[scale] = (values[1] / values[0]).min()
+    assert reach["log"] > 100 and reach["softplus"] < 10
+
+
 def test_shape_is_mirror_symmetric_and_starts_at_the_template_radius():
     torch.manual_seed(0)
     model = Encoder(ModelConfig(image_size=32))
@@ -125,6 +145,9 @@ def test_config_is_saved_with_the_version_and_old_checkpoints_are_refused():
     assert ModelConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
     with pytest.raises(ValueError, match="retrain"):
         ModelConfig.from_dict({**c.to_dict(), "version": 1})
+    # a version-2 checkpoint (before light_scale) loads as the model it trained: softplus light scales
+    v2 = {k: v for k, v in c.to_dict().items() if k != "light_scale"} | {"version": 2}
+    assert ModelConfig.from_dict(v2).light_scale == "softplus"
     with pytest.raises(ValueError, match="texture"):
         Encoder(ModelConfig(texture="flow"))
 

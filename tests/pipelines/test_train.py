@@ -48,6 +48,21 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
             assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0, shading
 
 
+def test_shared_light_partners_are_other_objects_under_the_same_env_map(tiny_glossy):
+    data = TrainingData(str(tiny_glossy), 32)
+    env = data.envmap_of_sample
+    for it in range(5):
+        b = data.batch(it, 4, seed=0, shared_light=True)
+        assert torch.equal(b["partner"], torch.tensor([2, 3, 0, 1]))
+        for k in range(2):
+            a, p = int(b["sample"][k]), int(b["sample"][k + 2])
+            assert env[a] == env[p]
+            others = [s for s in range(data.num_samples) if env[s] == env[a] and s != a]
+            assert p != a or not others  # another object wherever the map lights one
+        again = data.batch(it, 4, seed=0, shared_light=True)
+        assert torch.equal(again["image"], b["image"])
+
+
 def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
     full = config(tiny_glossy, tmp_path / "full", shading="mc")
     train(full, progress=False)
