@@ -31,7 +31,7 @@ help:
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
-	@echo "make train-variants   glossy SG ablations of our model: free light colour, global texture, edge antialiasing (F.1)"
+	@echo "make train-variants   glossy SG ablations of our model: light colour, texture, edge antialiasing (F.1), light (README)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -103,7 +103,8 @@ train-ablations: $(VENV)/.installed
 # Ablations of our model choices (glossy SG): light of any colour instead of white-balanced, the texture
 # decoded from the global code instead of looked up in the input, nvdiffrast-style edge antialiasing
 # instead of DIB-R's soft silhouette (the paper's Sec. F.1), light scales exponential in the head's output,
-# and that with the cross-view renders lit by another object's light under the same env map.
+# that with the cross-view renders lit by another object's light under the same env map, and the image
+# loss only on renders in the other view of each pair.
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
@@ -111,6 +112,7 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --visibility edge_aa --out $(RUNS)/glossy/sg-edge-aa-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --out $(RUNS)/glossy/sg-log-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --shared-light --out $(RUNS)/glossy/sg-shared-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --cross-view-only --out $(RUNS)/glossy/sg-cross-view-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

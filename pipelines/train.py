@@ -56,6 +56,7 @@ class TrainConfig:
     texture: str = "projected"  # projected | global (ModelConfig.texture)
     light_colour: str = "white"  # white | free (ModelConfig.light_colour)
     light_scale: str = "softplus"  # softplus | log (ModelConfig.light_scale)
+    cross_view_only: bool = False  # image losses on renders in the other view only (not the input view)
     shared_light: bool = False  # cross-view renders lit by another object's light under the same env map
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
@@ -140,13 +141,18 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     # render prediction i (from view i) in view j with the light predicted from view j
     src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
     dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
+    if config.cross_view_only:
+        # ... only in the other view: a texture that copies the input view's highlights and reflections gains
+        # nothing (they move between views), so they have to come from the light and the specular lobe
+        keep = src != dst
+        src, dst = src[keep], dst[keep]
     lit_by = dst.clone()
     if config.shared_light:
         # ... but across views with the light predicted from the partner: another object under the same
         # env map. One world light must then light both objects, so it cannot carry one object's blur or
         # tint: what differs between them has to go to their materials.
-        partner = batch["partner"].repeat_interleave(4)
         cross = src != dst
+        partner = batch["partner"][dst // 2]  # of the render's item (view 2i + j is of item i)
         lit_by[cross] = 2 * partner[cross] + dst[cross] % 2
     cams = views[dst.tolist()]
     shape_pred = pred.select(src)
@@ -162,7 +168,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
     total = sum(weights[k] * v for k, v in terms.items())
-    return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target,
+    return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=src,
                               world_to_camera=views.world_to_camera)
 
 
@@ -315,7 +321,8 @@ def _prepare_log(log_path: Path, start: int) -> None:
 
 
 def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
-    """Input | re-render | predicted albedo (the whole texture) | predicted light (world frame), for a few items."""
+    """Input | re-render (in the input view; in the other view with ``cross_view_only``) | predicted albedo
+    (the whole texture) | predicted light (world frame), for a few items."""
     n = min(rows, snap["input"].shape[0] // 2)
     pred = snap["pred"]
     s = snap["input"].shape[1]
@@ -323,7 +330,7 @@ def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
     for i in range(n):
         k = 2 * i
         inp = display_srgb(snap["input"][k, ..., :3] * snap["input"][k, ..., 3:])
-        ren = display_srgb(snap["render"][2 * k].detach())
+        ren = display_srgb(snap["render"][int((snap["src"] == k).nonzero()[0])].detach())  # its first render
         tex = torch.nn.functional.interpolate(display_srgb(pred.texture[k].detach()).permute(2, 0, 1)[None], size=(s, 2 * s))[0].permute(1, 2, 0)
         light = pred.select([k]).light(snap["world_to_camera"][[k]]).to_envmap(s, 2 * s).image[0].detach()
         tiles.append(torch.cat([inp, ren, tex, tonemap_envmap(light)], 1))
@@ -362,6 +369,8 @@ def main(argv=None) -> int:
                     help="silhouette gradient: DIB-R's soft silhouette (default) or antialiased edges (Sec. F.1)")
     ap.add_argument("--light-scale", choices=("softplus", "log"), default=None,
                     help="light sharpness and intensity linear (default) or exponential in the head's output")
+    ap.add_argument("--cross-view-only", action=argparse.BooleanOptionalAction, default=None,
+                    help="render each prediction only in the other view of its pair, not in its input view (default: off)")
     ap.add_argument("--shared-light", action=argparse.BooleanOptionalAction, default=None,
                     help="light the cross-view renders with the light predicted for another object under the same "
                          "env map (default: off)")

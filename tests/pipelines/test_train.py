@@ -48,6 +48,19 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
             assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0, shading
 
 
+def test_the_light_ablations_train(tiny_glossy, tmp_path):
+    """Log light scales, the light shared across objects and cross-view-only losses run and snapshot."""
+    cfg = config(tiny_glossy, tmp_path / "abl", lobes=4, iterations=4, light_scale="log", shared_light=True,
+                 cross_view_only=True, batch_objects=4)
+    train(cfg, progress=False)
+    assert (tmp_path / "abl" / "snapshots" / "iter_000004.png").exists()
+    model = make_model(cfg)
+    data = TrainingData(cfg.dataset, cfg.image_size)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    _, _, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, shared_light=True), cfg, lap)
+    assert snap["render"].shape[0] == 8 and torch.equal(snap["src"], torch.arange(8))  # each prediction, once
+
+
 def test_shared_light_partners_are_other_objects_under_the_same_env_map(tiny_glossy):
     data = TrainingData(str(tiny_glossy), 32)
     env = data.envmap_of_sample
