@@ -116,8 +116,8 @@ def run_variant(config: TrainConfig) -> str:
 
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
                  view_stride: int = 1, split: str = "test") -> tuple[dict, dict]:
-    """Mean metrics over the test views of the run's dataset (or ``dataset``; every ``view_stride``-th view
-    of each sample), and figure rows:
+    """Mean metrics over the ``split`` views of the run's dataset (or ``dataset``; every ``view_stride``-th
+    view of each sample; ``split="train"`` measures the train/test gap), and figure rows:
     {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
     config, model, iteration = load_run(run)
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)

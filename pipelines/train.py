@@ -117,7 +117,8 @@ class TrainingData:
             anchors = samples[:half]
             same_map = self.envmap_of_sample[anchors, None] == self.envmap_of_sample[None, :]  # (half, samples)
             same_map[torch.arange(half), anchors] = False  # another object if there is one
-            same_map[~same_map.any(1), anchors[~same_map.any(1)]] = True
+            alone = ~same_map.any(1)
+            same_map[alone, anchors[alone]] = True
             pick = torch.rand(same_map.shape, generator=g) * same_map
             samples = torch.cat([anchors, pick.argmax(1), samples[2 * half:]])
             partner[:half], partner[half:2 * half] = torch.arange(half, 2 * half), torch.arange(half)
