@@ -8,6 +8,7 @@ import torch
 
 from benchmarks.envmap_task import ALBEDO, CAMERA, INIT_RADIANCE, ROUGHNESS, SPHERE_SUBDIVISIONS, Task, learning_rate
 from dibrpp import Cameras, Material, Renderer, icosphere
+from dibrpp.shading import MCShader
 from dibrpp import conventions as conv
 from dibrpp.lights import EnvMap
 
@@ -23,13 +24,17 @@ class DibrppBackend:
         self.cameras = Cameras.orbit(CAMERA["distance"], CAMERA["elevation_deg"], CAMERA["azimuth_deg"],
                                      CAMERA["fov_deg"], task.resolution, device=self.device)
         self.material = Material(albedo=torch.tensor([ALBEDO], device=self.device), roughness=ROUGHNESS, metallic=1.0)
+        self.gbuffer = None  # (Fragments, GBuffer), built by the first render
 
     def texel_directions(self) -> torch.Tensor:
         return conv.equirect_directions(self.task.env_height, self.task.env_width)
 
-    def render(self, env: torch.Tensor, spp: int, seed: int | None = None) -> torch.Tensor:
-        renderer = Renderer("mc", spp=spp, mis=True, seed=seed)
-        return renderer(self.mesh, self.cameras, self.material, EnvMap(env.unsqueeze(0))).rgb[0]
+    def render(self, env: torch.Tensor, spp: int, seed: int | None = None, grad_seed: int | None = None) -> torch.Tensor:
+        renderer = Renderer(MCShader(spp=spp, mis=True, seed=seed, compile=True, grad_seed=grad_seed))
+        if self.gbuffer is None:  # only the light is optimised: rasterize once, as Mitsuba builds its BVH once
+            with torch.no_grad():
+                self.gbuffer = renderer.gbuffer(self.mesh, self.cameras, self.material)
+        return renderer.shade(*self.gbuffer, EnvMap(env.unsqueeze(0))).rgb[0]
 
     def render_still(self, env: np.ndarray, spp: int, seed: int) -> np.ndarray:
         """A map (H, W, 3) on this renderer's texel grid rendered without gradients."""
@@ -47,17 +52,18 @@ class DibrppBackend:
         self.opt.param_groups[0]["lr"] = learning_rate(self.task, it)
         self.opt.zero_grad(set_to_none=True)
         env = self.log_env.exp()
-        image = self.render(env, self.task.spp)
         if self.task.dibrpp_gradient == "correlated":
             # the residual and d image / d env share their samples: E[gradient] also minimises the render's
             # variance, which pulls the optimum towards a blurred sun
-            loss = (image - self.ref).square().mean()
+            loss = (self.render(env, self.task.spp) - self.ref).square().mean()
             loss.backward()
         else:
-            # residual from a second, independent render: an unbiased gradient of |E[image] - ref|^2 (what
-            # Mitsuba's prb computes; its primal and adjoint passes must use different seeds)
-            with torch.no_grad():
-                residual = self.render(env, self.task.spp) - self.ref
+            # one render whose backward replays independent samples (grad_seed): residual times an independent
+            # estimate's gradient is an unbiased gradient of |E[image] - ref|^2, as Mitsuba's prb with its
+            # seed / seed_grad
+            grad_seed = int(torch.randint(0, 2 ** 62, (1,)))
+            image = self.render(env, self.task.spp, grad_seed=grad_seed)
+            residual = image.detach() - self.ref
             loss = residual.square().mean()
             (2 * residual * image).mean().backward()
         self.opt.step()

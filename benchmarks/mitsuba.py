@@ -8,10 +8,11 @@ the GT map at high spp, then optimises the map from constant grey with Adam on l
 to 0.005) against that reference with an image L2 loss at 4 spp. Defaults: 256x256 image, 256x128 map, 300
 iterations; --quick: 64x64, 32x16, 20.
 
-- dibrpp (:mod:`benchmarks.envmap_dibrpp`): ``Renderer("mc")`` (rasterize, then GGX + env-map MIS shading:
-  2 + 2 directions per pixel), torch Adam. The loss gradient takes its residual from a second, independent
-  render, as Mitsuba's prb does (--dibrpp-gradient correlated: plain autodiff of one render, cheaper but
-  biased, see DibrppBackend.step).
+- dibrpp (:mod:`benchmarks.envmap_dibrpp`): ``Renderer(MCShader(compile=True))`` (rasterized once -- only the
+  light changes -- then GGX + env-map MIS shading: 2 + 2 directions per pixel), torch Adam. One render per
+  iteration; its backward replays independent samples (``grad_seed``), so the residual and the gradient are
+  decorrelated and the gradient unbiased, as Mitsuba's prb with its primal and adjoint seeds
+  (--dibrpp-gradient correlated: the same samples in both, biased, see DibrppBackend.step).
 - Mitsuba 3 (:mod:`benchmarks.envmap_mitsuba`): variant llvm_ad_rgb, integrator prb (max_depth 2: direct
   light only; env map hidden behind the object, as dibrpp leaves the background black), the same mesh and
   normals, principled BSDF, an envmap emitter whose ``data`` is optimised with mi.ad.Adam. 4 spp = 4 camera

@@ -3,7 +3,8 @@
     python -m benchmarks.renderer --out results/bench [--quick] [--repeats 5]
 
 (a) the training workload (32 renders of 64x64, 642-vertex sphere, SG K=32), forward and forward+backward;
-(b) shading cost at 256x256 (rasterization cached): SG for K in 1..128 and MC for N in 1..1024 (Table A's shape);
+(b) shading cost at 256x256 (rasterization cached, G-buffer built in the timing; the compiled SG rows build it
+    compiled too, as training does): SG for K in 1..128 and MC for N in 1..1024 (Table A's shape);
 (c) rasterization alone for 1k/10k/100k faces at 64^2, 128^2, 256^2 (cost ~ pixels + faces, not their product).
 Peak memory is the process's peak RSS above its level before the case (Linux /proc).
 """
@@ -20,7 +21,7 @@ import torch
 from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere, rasterize
 from dibrpp.lights import EnvMap, SGLight
-from dibrpp.renderer import build_gbuffer
+from dibrpp.renderer import build_gbuffer, build_gbuffer_compiled
 from dibrpp.shading import MCShader, SGShader
 from pipelines.formatting import format_number, markdown_table, write_csv
 
@@ -108,6 +109,7 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
     for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC", mc_ns), ("MC-plain", mc_ns)):
         for v in values:
             rough = torch.tensor([0.3], requires_grad=True)
+            gbuffer = build_gbuffer_compiled if kind == "SG-compiled" else build_gbuffer
             if kind.startswith("SG"):
                 shader, base = SGShader(compile=kind == "SG-compiled"), random_sg_light(v)
                 make_light = lambda b=base: SGLight(b.axis, b.sharpness, b.amplitude.clone().requires_grad_(True))  # noqa: E731
@@ -118,7 +120,7 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
             def run(backward: bool):
                 mat = Material(albedo=torch.tensor([[0.6, 0.5, 0.4]]), roughness=rough, specular=0.5)
                 with torch.set_grad_enabled(backward):
-                    out = shader(build_gbuffer(sphere, cams, mat, frags), make_light())
+                    out = shader(gbuffer(sphere, cams, mat, frags), make_light())
                     if backward:
                         out.sum().backward()
 

@@ -39,7 +39,7 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
         t0 = time.perf_counter()
         batch = data.batch(it, config.batch_objects, config.seed)
         t1 = time.perf_counter()
-        total, _, _ = multiview_losses(model, make_renderer(config, seed=it), batch, config, laplacian)
+        total, _, _ = multiview_losses(model, make_renderer(config, seed=it, training=True), batch, config, laplacian)
         t2 = time.perf_counter()
         opt.zero_grad(set_to_none=True)
         total.backward()

@@ -10,11 +10,11 @@ check would synchronise the GPU); the light objects in :mod:`dibrpp.lights` vali
 from __future__ import annotations
 
 import math
-import warnings
 
 import torch
 
 from .brdf import MIN_ALPHA
+from .jit import CompiledOrEager
 
 # Clamped cosine max(n . w, 0) ~ one SG with axis n (Wang et al. 2009, used by DIB-R++).
 COSINE_SG_SHARPNESS = 2.133
@@ -90,27 +90,7 @@ def sg_product_integral(cos: torch.Tensor, sharpness1: torch.Tensor, sharpness2:
     return 2 * math.pi * torch.exp(exponent) * _one_minus_exp_over_d(d)
 
 
-class _CompiledOrEager:
-    """``fn`` through ``torch.compile`` (one fused loop instead of ~15 passes over a (B, M, K) tensor, in
-    the forward and the backward), or ``fn`` itself, with one warning, where compilation fails (no C++
-    compiler, an unsupported platform)."""
-
-    def __init__(self, fn):
-        self.fn, self.compiled, self.failed = fn, None, False
-
-    def __call__(self, *args):
-        if not self.failed:
-            try:
-                if self.compiled is None:
-                    self.compiled = torch.compile(self.fn, dynamic=True)
-                return self.compiled(*args)
-            except Exception as e:  # noqa: BLE001 -- any compiler failure: fall back, results are identical
-                warnings.warn(f"torch.compile failed ({type(e).__name__}: {str(e)[:200]}); SG shading runs eagerly")
-                self.failed = True
-        return self.fn(*args)
-
-
-sg_product_integral_compiled = _CompiledOrEager(sg_product_integral)
+sg_product_integral_compiled = CompiledOrEager(sg_product_integral)
 
 
 def sg_inner_product(axis1, sharpness1, amplitude1, axis2, sharpness2, amplitude2) -> torch.Tensor:

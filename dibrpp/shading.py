@@ -20,6 +20,7 @@ import torch
 
 from . import sg as sgmath
 from .brdf import ShadingPoint, geometry_term
+from .jit import CompiledOrEager
 from .lights import _Light
 
 
@@ -69,15 +70,29 @@ class MCShader:
     max_batch_samples: pixel x sample pairs drawn from the generator at once (this sets which uniform goes
     to which sample, so it is part of the estimator for a seed). eval_batch_samples: pixel x sample pairs
     evaluated at once, in forward and when replaying (only memory and speed depend on it).
+
+    grad_seed: None (default): the backward replays the forward's own samples, the exact gradient of the
+    returned estimate. A seed: the backward draws independent samples from it instead, so the gradient is
+    that of a second, independent estimate, decorrelated from the returned value (Mitsuba's ``seed_grad``).
+    A loss's residual from the value then times that gradient is unbiased for |E[image] - target|^2 at the
+    cost of one render, where replaying the same samples biases it towards low-variance (blurred) lights.
+
+    compile: evaluate the samples (direction sampling, BRDF, light look-ups, MIS weights) through
+    torch.compile: one fused loop per slice instead of ~100 tensor passes, forward and replay (~1.6x
+    faster per render on CPU once compiled; the first render compiles for about a minute).
     """
 
     def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21,
-                 replay: bool = True, eval_batch_samples: int = 1 << 18):
+                 replay: bool = True, eval_batch_samples: int = 1 << 18, compile: bool = False,
+                 grad_seed: int | None = None):
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
+        if grad_seed is not None and not replay:
+            raise ValueError("grad_seed draws the backward's samples when replaying; it needs replay=True")
         self.spp, self.mis, self.seed = int(spp), bool(mis), seed
         self.max_batch_samples = max_batch_samples
         self.replay, self.eval_batch_samples = bool(replay), int(eval_batch_samples)
+        self.compile, self.grad_seed = bool(compile), grad_seed
 
     def __call__(self, g: GBuffer, light) -> torch.Tensor:
         plan = _MCPlan(self, g, light)
@@ -110,6 +125,8 @@ class _MCPlan:
         self.n_pix = p.normal.shape[0]
         self.device = p.normal.device
         self.mis = shader.mis
+        self.grad_seed = shader.grad_seed
+        self.sample_terms = _sample_terms_compiled if shader.compile else _MCPlan.terms
         self.n_light = shader.spp // 2 if shader.mis else 0
         self.n_brdf = shader.spp - self.n_light
         self.chunk = max(1, shader.max_batch_samples // max(self.n_pix, 1))
@@ -187,15 +204,23 @@ class _MCPlan:
         for i, (kind, _) in enumerate(self.chunks):
             self.states.append(self.gen.get_state())
             u = self.draw(i, self.gen)
-            parts = [self.terms(point, light, kind, u[:, sl]) for sl in self.slices(i)]
+            parts = [self.sample_terms(self, point, light, kind, u[:, sl]) for sl in self.slices(i)]
             # one sum over the chunk's samples: the same additions, whatever the slices
             total = total + (parts[0] if len(parts) == 1 else torch.cat(parts, 1)).sum(1)
         return total
 
-    def replay_uniforms(self, i: int) -> torch.Tensor:
+    def backward_uniforms(self):
+        """The uniforms of each chunk for the backward: the forward's again, or fresh ones from ``grad_seed``."""
         gen = torch.Generator(device=self.device)
-        gen.set_state(self.states[i])
-        return self.draw(i, gen)
+        if self.grad_seed is not None:
+            gen.manual_seed(self.grad_seed)
+        for i in range(len(self.chunks)):
+            if self.grad_seed is None:
+                gen.set_state(self.states[i])
+            yield self.draw(i, gen)
+
+
+_sample_terms_compiled = CompiledOrEager(_MCPlan.terms)
 
 
 class _MCReplay(torch.autograd.Function):
@@ -222,10 +247,9 @@ class _MCReplay(torch.autograd.Function):
             wrt = [t for t, need in zip(leaves, needs) if need]
             where = [i for i, need in enumerate(needs) if need]
             point, light = plan.bind(leaves)
-            for i, (kind, _) in enumerate(plan.chunks):
-                u = plan.replay_uniforms(i)
+            for i, ((kind, _), u) in enumerate(zip(plan.chunks, plan.backward_uniforms())):
                 for sl in plan.slices(i):
-                    part = plan.terms(point, light, kind, u[:, sl]).sum(1)
+                    part = plan.sample_terms(plan, point, light, kind, u[:, sl]).sum(1)
                     got = torch.autograd.grad(part, wrt, grad_out, allow_unused=True)
                     for j, gr in zip(where, got):
                         if gr is not None:
@@ -307,7 +331,7 @@ def make_shader(name: str, spp: int = 64, mis: bool = True, seed: int | None = N
 
     replay: MC only, see :class:`MCShader` (False: the plain autograd path)."""
     if name == "mc":
-        return MCShader(spp=spp, mis=mis, seed=seed, replay=replay)
+        return MCShader(spp=spp, mis=mis, seed=seed, replay=replay, compile=compile)
     if name == "sg":
         return SGShader(compile)
     if name in ("sh", "sh-sg"):

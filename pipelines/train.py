@@ -60,7 +60,7 @@ class TrainConfig:
     shared_light: bool = False  # cross-view renders lit by another object's light under the same env map
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
-    compile: bool = True  # SG shading through torch.compile (falls back to eager where it cannot)
+    compile: bool = True  # G-buffer and SG/SH/MC shading through torch.compile (falls back to eager where it cannot)
 
     @classmethod
     def preset(cls, name: str, **overrides) -> "TrainConfig":
@@ -236,9 +236,12 @@ def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
     return state, model
 
 
-def make_renderer(config: TrainConfig, seed: int) -> Renderer:
-    return Renderer(config.shading, spp=config.spp, seed=seed,
-                    raster_settings=RasterSettings(cull_backfaces=True, visibility=config.visibility), compile=config.compile)
+def make_renderer(config: TrainConfig, seed: int, training: bool = False) -> Renderer:
+    """The renderer of a run. ``training``: the losses read the soft mask ("dibr") or the coverage
+    ("edge_aa"), so with "dibr" the anti-aliased coverage (only the image's alpha) is not computed."""
+    filter_width = 0.0 if training and config.visibility == "dibr" else RasterSettings.filter_width
+    settings = RasterSettings(cull_backfaces=True, visibility=config.visibility, filter_width=filter_width)
+    return Renderer(config.shading, spp=config.spp, seed=seed, raster_settings=settings, compile=config.compile)
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> dict:
@@ -282,7 +285,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
                desc=f"{Path(config.dataset).name}/{config.shading}", unit="it")
     t_start = time.perf_counter()
     for it in bar:
-        renderer = make_renderer(config, seed=config.seed * 7919 + it)  # MC noise differs per iteration, reproducibly
+        renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True)  # MC noise differs per iteration, reproducibly
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, config.shared_light)
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian)
         check_finite({"total": total, **terms})

@@ -179,9 +179,23 @@ def test_compiled_sg_shading_matches_eager_values_and_gradients():
 
     for eager, compiled in zip(render(False), render(True)):
         assert torch.allclose(eager, compiled, rtol=1e-4, atol=1e-5)
+    from dibrpp import renderer
     from dibrpp import sg as sgmath
 
-    assert not sgmath.sg_product_integral_compiled.failed  # the compiled path really ran
+    # the compiled paths really ran
+    assert not (sgmath.sg_product_integral_compiled.failed or renderer.build_gbuffer_compiled.failed)
+
+
+def test_gbuffer_then_shade_is_the_render():
+    """Rasterize once and shade under several lights (light-only optimisation) = a full render each time."""
+    mesh, cams = icosphere(2), Cameras.orbit(3.0, 10.0, torch.tensor([20.0, 140.0]), 40.0, 24)
+    mat = Material(albedo=torch.tensor([[0.7, 0.5, 0.3]]), roughness=0.3, specular=0.5)
+    r = Renderer("sg")
+    frags, g = r.gbuffer(mesh, cams, mat)
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        light = SGLight(torch.randn(2, 4, 3), torch.rand(2, 4) * 40 + 1, torch.rand(2, 4, 3))
+        assert torch.equal(r.shade(frags, g, light).image, r(mesh, cams, mat, light).image)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
