@@ -104,7 +104,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     return per_view, rows
 
 
-VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "cross_view_only")  # model choices a run may change (ablations)
+VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "cross_view_only",
+                  "oracle_roughness")  # model choices a run may change (ablations)
 
 
 def run_variant(config: TrainConfig) -> str:

@@ -58,6 +58,9 @@ class TrainConfig:
     light_scale: str = "softplus"  # softplus | log (ModelConfig.light_scale)
     cross_view_only: bool = False  # image losses on renders in the other view only (not the input view)
     shared_light: bool = False  # cross-view renders lit by another object's light under the same env map
+    # diagnostic, not a model: render with each object's GT roughness (object.json) instead of the predicted
+    # one, to measure how much of the light's error is the roughness/light-blur ambiguity
+    oracle_roughness: bool = False
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # G-buffer and SG/SH/MC shading through torch.compile (falls back to eager where it cannot)
@@ -96,6 +99,7 @@ class TrainingData:
                 w2c.append(item["world_to_camera"][0])
                 fov.append(item["fov"][0])
         self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
+        self.roughness_of_sample = torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in ds.samples])
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
         self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
         self.fov = torch.stack(fov).view(n_samples, n_views)
@@ -127,7 +131,7 @@ class TrainingData:
         views = torch.stack([v1, v2], 1)
         s = samples.unsqueeze(1).expand(-1, 2)
         return dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
-                    sample=samples, partner=partner)
+                    sample=samples, partner=partner, roughness=self.roughness_of_sample[samples])
 
 
 # ----------------------------------------------------------------------------- one step
@@ -157,6 +161,8 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         lit_by[cross] = 2 * partner[cross] + dst[cross] % 2
     cams = views[dst.tolist()]
     shape_pred = pred.select(src)
+    if config.oracle_roughness:
+        shape_pred.roughness = batch["roughness"][src // 2].to(shape_pred.roughness)
     light = pred.select(lit_by).light(views.world_to_camera[lit_by])
     out = renderer(shape_pred.meshes(), cams, shape_pred.material(), light)
     target = flat[dst]
@@ -375,6 +381,8 @@ def main(argv=None) -> int:
                     help="light sharpness and intensity linear (default) or exponential in the head's output")
     ap.add_argument("--cross-view-only", action=argparse.BooleanOptionalAction, default=None,
                     help="render each prediction only in the other view of its pair, not in its input view (default: off)")
+    ap.add_argument("--oracle-roughness", action=argparse.BooleanOptionalAction, default=None,
+                    help="diagnostic: render with the GT roughness of each object instead of the predicted one")
     ap.add_argument("--shared-light", action=argparse.BooleanOptionalAction, default=None,
                     help="light the cross-view renders with the light predicted for another object under the same "
                          "env map (default: off)")

@@ -1,3 +1,4 @@
+import json
 import os
 import shutil
 import subprocess
@@ -59,6 +60,23 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     _, _, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, shared_light=True), cfg, lap)
     assert snap["render"].shape[0] == 8 and torch.equal(snap["src"], torch.arange(8))  # each prediction, once
+
+
+def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
+    """The diagnostic --oracle-roughness: the batch carries object.json's roughness, the renders use it, and
+    the roughness head then gets no gradient from the image."""
+    data = TrainingData(str(tiny_glossy), 32)
+    train_objects = [o for o in json.loads((tiny_glossy / "manifest.json").read_text())["objects"] if o["split"] == "train"]
+    roughness_of_sample = [o["material"]["roughness"] for o in train_objects for _ in o["envmaps"]]
+    b = data.batch(0, 4, seed=0)
+    assert b["roughness"].tolist() == pytest.approx([roughness_of_sample[k] for k in b["sample"].tolist()])
+    cfg = config(tiny_glossy, tmp_path / "oracle", lobes=4, oracle_roughness=True)
+    model = make_model(cfg)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    total, _, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), b, cfg, lap)
+    total.backward()
+    assert model.material_head.weight.grad[0].abs().max() == 0  # roughness row: unused
+    assert model.material_head.weight.grad[1].abs().max() > 0  # specular row: still learnt
 
 
 def test_shared_light_partners_are_other_objects_under_the_same_env_map(tiny_glossy):
