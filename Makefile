@@ -104,7 +104,8 @@ train-ablations: $(VENV)/.installed
 # decoded from the global code instead of looked up in the input, nvdiffrast-style edge antialiasing
 # instead of DIB-R's soft silhouette (the paper's Sec. F.1), light scales exponential in the head's output,
 # that with the cross-view renders lit by another object's light under the same env map, and the image
-# loss only on renders in the other view of each pair; and a diagnostic, not a model: rendering with each
+# loss only on renders in the other view of each pair, an L1 between the albedos predicted from an object's
+# two views; and a diagnostic, not a model: rendering with each
 # object's GT roughness (how much of the light's error is the roughness/light-blur ambiguity).
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
@@ -114,6 +115,7 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --out $(RUNS)/glossy/sg-log-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --shared-light --out $(RUNS)/glossy/sg-shared-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --cross-view-only --out $(RUNS)/glossy/sg-cross-view-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-consistency 1.0 --out $(RUNS)/glossy/sg-albedo-consistency-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).

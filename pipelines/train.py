@@ -61,6 +61,9 @@ class TrainConfig:
     # diagnostic, not a model: render with each object's GT roughness (object.json) instead of the predicted
     # one, to measure how much of the light's error is the roughness/light-blur ambiguity
     oracle_roughness: bool = False
+    # ablation: L1 between the albedos predicted from the two views of an object (albedo is view-independent;
+    # reflections copied into the look-up move between views), 0 = off
+    w_albedo_consistency: float = 0.0
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # G-buffer and SG/SH/MC shading through torch.compile (falls back to eager where it cannot)
@@ -174,6 +177,10 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
+    if config.w_albedo_consistency:
+        tex = pred.texture.view(b, 2, *pred.texture.shape[1:])  # prediction 2i + j is of item i, view j
+        terms["albedo_consistency"] = (tex[:, 0] - tex[:, 1]).abs().mean()
+        weights["albedo_consistency"] = config.w_albedo_consistency
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=src,
                               world_to_camera=views.world_to_camera)
@@ -369,7 +376,8 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="cpu", help="cpu (default) | smoke | paper")
     ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
     for f in fields(TrainConfig):
-        if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads"):
+        if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads",
+                      "w_albedo_consistency"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
     ap.add_argument("--texture", choices=("projected", "global"), default=None,
                     help="albedo looked up from the input view (default) or decoded from the global code")

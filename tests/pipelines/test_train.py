@@ -50,16 +50,19 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
 
 
 def test_the_light_ablations_train(tiny_glossy, tmp_path):
-    """Log light scales, the light shared across objects and cross-view-only losses run and snapshot."""
+    """Log light scales, the light shared across objects, cross-view-only losses and the albedo consistency
+    between an object's two views run and snapshot."""
     cfg = config(tiny_glossy, tmp_path / "abl", lobes=4, iterations=4, light_scale="log", shared_light=True,
-                 cross_view_only=True, batch_objects=4)
+                 cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0)
     train(cfg, progress=False)
     assert (tmp_path / "abl" / "snapshots" / "iter_000004.png").exists()
     model = make_model(cfg)
     data = TrainingData(cfg.dataset, cfg.image_size)
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
-    _, _, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, shared_light=True), cfg, lap)
+    _, terms, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, shared_light=True), cfg, lap)
     assert snap["render"].shape[0] == 8 and torch.equal(snap["src"], torch.arange(8))  # each prediction, once
+    tex = snap["pred"].texture
+    assert torch.allclose(terms["albedo_consistency"], (tex[0::2] - tex[1::2]).abs().mean())
 
 
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
