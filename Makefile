@@ -105,8 +105,8 @@ train-ablations: $(VENV)/.installed
 # instead of DIB-R's soft silhouette (the paper's Sec. F.1), light scales exponential in the head's output,
 # that with the cross-view renders lit by another object's light under the same env map, and the image
 # loss only on renders in the other view of each pair, an L1 between the albedos predicted from an object's
-# two views; and a diagnostic, not a model: rendering with each
-# object's GT roughness (how much of the light's error is the roughness/light-blur ambiguity).
+# two views; and a diagnostic, not a model: rendering with each object's GT roughness (how much of the
+# light's error is the roughness/light-blur ambiguity).
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
