@@ -116,6 +116,7 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --shared-light --out $(RUNS)/glossy/sg-shared-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --cross-view-only --out $(RUNS)/glossy/sg-cross-view-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-consistency 1.0 --out $(RUNS)/glossy/sg-albedo-consistency-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-consistency 0.1 --out $(RUNS)/glossy/sg-albedo-consistency-0.1-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
