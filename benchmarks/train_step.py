@@ -19,7 +19,7 @@ import torch
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
 from pipelines.formatting import markdown_table, write_csv
-from pipelines.train import TrainConfig, TrainingData, make_model, make_renderer, multiview_losses
+from pipelines.train import TrainConfig, TrainingData, make_model, make_optimizer, make_renderer, multiview_losses
 
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
@@ -29,7 +29,7 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
     torch.manual_seed(config.seed)
     data = TrainingData(config.dataset, config.image_size)
     model = make_model(config)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    opt = make_optimizer(model, config)
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     encoder_s = []
     model.register_forward_pre_hook(lambda *_: encoder_s.append(-time.perf_counter()))

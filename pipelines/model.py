@@ -127,8 +127,11 @@ def white_balance(light: dict, kind: str, env_height: int) -> dict:
 class Prediction:
     """What the encoder predicts for a batch of B images; converts to renderer objects."""
 
-    def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes):
+    def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes,
+                 facing: torch.Tensor | None = None):
         self.verts, self.texture = verts, texture
+        # (B, Ht, Wt): how squarely each texel faced the input camera (0: away); None for the global texture
+        self.facing = facing
         self.roughness, self.specular, self.metallic = roughness, specular, metallic
         self.light_params, self.config, self.template = light_params, config, template
 
@@ -155,7 +158,8 @@ class Prediction:
     def select(self, idx) -> "Prediction":
         pick = lambda t: t[idx]  # noqa: E731
         return Prediction(pick(self.verts), pick(self.texture), pick(self.roughness), pick(self.specular),
-                          pick(self.metallic), {k: pick(v) for k, v in self.light_params.items()}, self.config, self.template)
+                          pick(self.metallic), {k: pick(v) for k, v in self.light_params.items()}, self.config, self.template,
+                          None if self.facing is None else pick(self.facing))
 
 
 def _conv(cin, cout):
@@ -281,15 +285,17 @@ class Encoder(nn.Module):
         return self.template_dirs * scale.unsqueeze(1) + offsets
 
     def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor, verts: torch.Tensor,
-                 cameras: Cameras | None) -> torch.Tensor:
+                 cameras: Cameras | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Linear albedo (B, Ht, Wt, 3) in (0, 1), and the texels' facing of the input camera (projected only)."""
         c = self.config
         b, th, tw = f.shape[0], c.texture_height // 8, c.texture_width // 8
-        feats = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))]
+        feats, facing = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))], None
         if c.texture == "projected":
             if cameras is None:
                 raise ValueError("a projected texture needs the input cameras: call the encoder with cameras=...")
             feats.append(self._projected(stem, images, verts.detach(), cameras))
-        return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1)  # linear albedo in (0, 1)
+            facing = feats[-1][:, -1]
+        return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1), facing
 
     def _projected(self, stem, images, verts, cameras: Cameras) -> torch.Tensor:
         """What the input view shows at each texel of the predicted surface: colour and alpha, stem
@@ -317,7 +323,7 @@ class Encoder(nn.Module):
         f = self.fc(self.backbone(stem))
         b = images.shape[0]
         verts = self._shape(self.shape_head(f))
-        texture = self._texture(f, stem, images, verts, cameras)
+        texture, facing = self._texture(f, stem, images, verts, cameras)
         mat = self.material_head(f)
         lo, hi = c.roughness_range
         roughness = squash(mat[:, 0], lo, hi)
@@ -336,4 +342,4 @@ class Encoder(nn.Module):
             light = {"image": self._positive(raw.view(b, c.env_height, c.env_width, 3))}
         if c.light_colour == "white":
             light = white_balance(light, kind, c.env_height)
-        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template())
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)

@@ -64,6 +64,13 @@ class TrainConfig:
     # ablation: L1 between the albedos predicted from the two views of an object (albedo is view-independent;
     # reflections copied into the look-up move between views), 0 = off
     w_albedo_consistency: float = 0.0
+    # ablation: pull each albedo texel down to the darker of the object's two views where both views see it
+    # (the darker one is held fixed). Reflections add light and move between views; the paint's colour does
+    # neither, so the darker view holds less reflection. 0 = off
+    w_albedo_darker: float = 0.0
+    # the light head's learning rate as a multiple of lr. Its outputs must travel far (a sun's SG sharpness is
+    # in the hundreds, the initial lobes' ~12) while Adam moves a bias by at most lr per step; 1 = one rate
+    light_lr_scale: float = 1.0
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # G-buffer and SG/SH/MC shading through torch.compile (falls back to eager where it cannot)
@@ -181,9 +188,25 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         tex = pred.texture.view(b, 2, *pred.texture.shape[1:])  # prediction 2i + j is of item i, view j
         terms["albedo_consistency"] = (tex[:, 0] - tex[:, 1]).abs().mean()
         weights["albedo_consistency"] = config.w_albedo_consistency
+    if config.w_albedo_darker:
+        terms["albedo_darker"] = darker_view_albedo_loss(pred.texture, pred.facing)
+        weights["albedo_darker"] = config.w_albedo_darker
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=src,
                               world_to_camera=views.world_to_camera)
+
+
+def darker_view_albedo_loss(texture: torch.Tensor, facing: torch.Tensor | None) -> torch.Tensor:
+    """Mean amount by which each albedo texel exceeds the darker of its object's two views, over texels that
+    face both input cameras. texture (2B, Ht, Wt, 3) and facing (2B, Ht, Wt), prediction 2i + j of item i, view j.
+    The darker value is a fixed target, so only the brighter view's albedo is pulled (no collapse to a mean)."""
+    if facing is None:
+        raise ValueError("the darker-view albedo term needs the projected texture (--texture projected)")
+    tex = texture.unflatten(0, (-1, 2))
+    both = ((facing.unflatten(0, (-1, 2)) > 0).all(1)).unsqueeze(1).unsqueeze(-1)  # (B, 1, Ht, Wt, 1)
+    darker = tex.min(1, keepdim=True).values.detach()
+    excess = torch.where(tex > darker, tex - darker, 0.0) * both  # no gradient to the darker view itself
+    return excess.sum() / (both.sum() * 2 * 3).clamp_min(1)
 
 
 def check_finite(terms: dict) -> None:
@@ -213,6 +236,14 @@ def save_checkpoint(path: Path, model, opt, iteration: int, config: TrainConfig)
              "iteration": iteration, "config": asdict(config), "torch_rng": torch.get_rng_state()}
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
+
+
+def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
+    if config.light_lr_scale == 1.0:
+        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the option had
+    light = set(model.light_head.parameters())
+    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in light]},
+                             {"params": list(light), "lr": config.lr * config.light_lr_scale}], lr=config.lr)
 
 
 def make_model(config: TrainConfig) -> Encoder:
@@ -266,7 +297,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     torch.manual_seed(config.seed)
     data = TrainingData(config.dataset, config.image_size)
     model = make_model(config)
-    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+    opt = make_optimizer(model, config)
     ckpt = out / "checkpoint.pt"
     start = 0
     if resume and ckpt.exists():
@@ -377,7 +408,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
     for f in fields(TrainConfig):
         if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads",
-                      "w_albedo_consistency"):
+                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
     ap.add_argument("--texture", choices=("projected", "global"), default=None,
                     help="albedo looked up from the input view (default) or decoded from the global code")

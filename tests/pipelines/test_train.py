@@ -7,7 +7,8 @@ import sys
 import pytest
 import torch
 
-from pipelines.train import TrainConfig, TrainingData, make_model, make_renderer, multiview_losses, train
+from pipelines.train import (TrainConfig, TrainingData, darker_view_albedo_loss, make_model, make_optimizer,
+                             make_renderer, multiview_losses, train)
 from dibrpp.mesh import uniform_laplacian
 
 
@@ -53,7 +54,7 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     """Log light scales, the light shared across objects, cross-view-only losses and the albedo consistency
     between an object's two views run and snapshot."""
     cfg = config(tiny_glossy, tmp_path / "abl", lobes=4, iterations=4, light_scale="log", shared_light=True,
-                 cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0)
+                 cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0, w_albedo_darker=1.0)
     train(cfg, progress=False)
     assert (tmp_path / "abl" / "snapshots" / "iter_000004.png").exists()
     model = make_model(cfg)
@@ -63,6 +64,33 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     assert snap["render"].shape[0] == 8 and torch.equal(snap["src"], torch.arange(8))  # each prediction, once
     tex = snap["pred"].texture
     assert torch.allclose(terms["albedo_consistency"], (tex[0::2] - tex[1::2]).abs().mean())
+    assert torch.allclose(terms["albedo_darker"], darker_view_albedo_loss(tex, snap["pred"].facing))
+
+
+def test_darker_view_albedo_pulls_only_the_brighter_view_where_both_see_the_texel():
+    """Two items, texels 2 x 1: item 0's views disagree on texel 0 (0.8 vs 0.2, both facing) and texel 1 (only
+    view 0 faces it); item 1's views agree. Only texel 0 of item 0 counts: excess 0.6 in 3 channels of view 0."""
+    tex = torch.tensor([0.8, 0.5, 0.2, 0.1, 0.4, 0.4, 0.4, 0.4]).view(4, 2, 1, 1).expand(4, 2, 1, 3).clone()
+    tex.requires_grad_(True)
+    facing = torch.tensor([[1.0, 1.0], [0.5, 0.0], [1.0, 1.0], [1.0, 1.0]]).view(4, 2, 1)
+    loss = darker_view_albedo_loss(tex, facing)
+    assert loss.item() == pytest.approx(3 * 0.6 / (3 * 2 * 3))  # 3 texel pairs seen by both views
+    loss.backward()
+    assert tex.grad[0, 0].abs().sum() > 0 and tex.grad[1, 0].abs().sum() == 0  # the darker view is the fixed target
+    assert tex.grad[:, 1].abs().sum() == 0 and tex.grad[2:].abs().sum() == 0
+    with pytest.raises(ValueError, match="projected texture"):
+        darker_view_albedo_loss(tex, None)
+
+
+def test_light_lr_scale_gives_the_light_head_its_own_rate_and_one_group_by_default():
+    cfg = TrainConfig(lobes=4, lr=1e-3)
+    model = make_model(cfg)
+    assert len(make_optimizer(model, cfg).param_groups) == 1  # checkpoints written before the option still resume
+    groups = make_optimizer(model, TrainConfig(lobes=4, lr=1e-3, light_lr_scale=10.0)).param_groups
+    light = {id(p) for p in model.light_head.parameters()}
+    assert [g["lr"] for g in groups] == [1e-3, pytest.approx(1e-2)]
+    assert {id(p) for p in groups[1]["params"]} == light and not light & {id(p) for p in groups[0]["params"]}
+    assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
 
 
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
