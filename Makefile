@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies data eval train-ablations clean help
+.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
@@ -35,6 +35,7 @@ help:
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
+	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -140,6 +141,11 @@ bench: bench-renderer bench-mitsuba bench-train
 # Figures A-E of the supplementary material (Sec. B, C) on this machine.
 studies: $(VENV)/.installed
 	$(PY) -m studies --out results/studies
+
+# How much of the glossy cars' reflection two views of the camera ring share (README, "Why the light stays weak").
+study-reflections: $(VENV)/.installed
+	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
+	$(PY) -m studies.reflections --dataset $(DATA)/glossy --out results/studies
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info
