@@ -107,8 +107,10 @@ train-ablations: $(VENV)/.installed
 # that with the cross-view renders lit by another object's light under the same env map, and the image
 # loss only on renders in the other view of each pair, an L1 between the albedos predicted from an object's
 # two views, each albedo pulled down to the darker of the two views, the light head at 10x the learning
-# rate (with exponential scales); and a diagnostic, not a model: rendering with each object's GT roughness (how much of the
-# light's error is the roughness/light-blur ambiguity).
+# rate (with exponential scales), a curriculum that renders every object with its mean albedo for the first
+# 500 iterations; and diagnostics, not models: the mean albedo for the whole run (how well the light learns
+# when the albedo cannot hold reflections) and each object's GT roughness (how much of the light's error is
+# the roughness/light-blur ambiguity).
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
@@ -122,6 +124,8 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-darker 1.0 --out $(RUNS)/glossy/sg-albedo-darker-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-darker 0.1 --out $(RUNS)/glossy/sg-albedo-darker-0.1-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --light-lr-scale 10 --out $(RUNS)/glossy/sg-log-light-lr10-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 500 --out $(RUNS)/glossy/sg-flat-albedo-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 1500 --out $(RUNS)/glossy/sg-flat-albedo-1500-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).

@@ -71,6 +71,9 @@ class TrainConfig:
     # the light head's learning rate as a multiple of lr. Its outputs must travel far (a sun's SG sharpness is
     # in the hundreds, the initial lobes' ~12) while Adam moves a bias by at most lr per step; 1 = one rate
     light_lr_scale: float = 1.0
+    # curriculum: for this many iterations every object's renders use its mean albedo (so shading and
+    # reflections must come from the light), then the texture's detail fades in over as many more; 0 = off
+    flat_albedo_iterations: int = 0
     visibility: str = "dibr"  # silhouette gradient: dibr (soft silhouette) | edge_aa (antialiased edges; Sec. F.1)
     threads: int = 0  # torch threads per process (0: torch's default)
     compile: bool = True  # G-buffer and SG/SH/MC shading through torch.compile (falls back to eager where it cannot)
@@ -146,8 +149,22 @@ class TrainingData:
 
 # ----------------------------------------------------------------------------- one step
 
-def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian) -> tuple[torch.Tensor, dict, dict]:
-    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots)."""
+def albedo_detail(config: TrainConfig, iteration: int) -> float:
+    """How much of the texture's detail the renders use at ``iteration`` (the flat-albedo curriculum)."""
+    n = config.flat_albedo_iterations
+    return 1.0 if n <= 0 else min(1.0, max(0.0, (iteration - n) / n))
+
+
+def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:
+    """(B, Ht, Wt, 3) texture -> each texture's mean plus ``detail`` times its variation about the mean."""
+    mean = texture.mean((1, 2), keepdim=True)
+    return mean + detail * (texture - mean)
+
+
+def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
+                     iteration: int | None = None) -> tuple[torch.Tensor, dict, dict]:
+    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
+    drives the curricula (None: the trained model, full detail)."""
     img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
     b, s = img.shape[0], img.shape[2]
     flat = img.reshape(b * 2, s, s, 4)
@@ -173,6 +190,9 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     shape_pred = pred.select(src)
     if config.oracle_roughness:
         shape_pred.roughness = batch["roughness"][src // 2].to(shape_pred.roughness)
+    detail = 1.0 if iteration is None else albedo_detail(config, iteration)
+    if detail < 1.0:
+        shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
     light = pred.select(lit_by).light(views.world_to_camera[lit_by])
     out = renderer(shape_pred.meshes(), cams, shape_pred.material(), light)
     target = flat[dst]
@@ -331,7 +351,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     for it in bar:
         renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True)  # MC noise differs per iteration, reproducibly
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, config.shared_light)
-        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian)
+        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -408,7 +428,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
     for f in fields(TrainConfig):
         if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads",
-                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale"):
+                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale", "flat_albedo_iterations"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
     ap.add_argument("--texture", choices=("projected", "global"), default=None,
                     help="albedo looked up from the input view (default) or decoded from the global code")

@@ -7,8 +7,8 @@ import sys
 import pytest
 import torch
 
-from pipelines.train import (TrainConfig, TrainingData, darker_view_albedo_loss, make_model, make_optimizer,
-                             make_renderer, multiview_losses, train)
+from pipelines.train import (TrainConfig, TrainingData, albedo_detail, darker_view_albedo_loss, make_model,
+                             make_optimizer, make_renderer, multiview_losses, train, with_albedo_detail)
 from dibrpp.mesh import uniform_laplacian
 
 
@@ -91,6 +91,22 @@ def test_light_lr_scale_gives_the_light_head_its_own_rate_and_one_group_by_defau
     assert [g["lr"] for g in groups] == [1e-3, pytest.approx(1e-2)]
     assert {id(p) for p in groups[1]["params"]} == light and not light & {id(p) for p in groups[0]["params"]}
     assert sum(len(g["params"]) for g in groups) == len(list(model.parameters()))
+
+
+def test_flat_albedo_curriculum_renders_mean_albedos_then_fades_the_detail_in(tiny_glossy):
+    cfg = config(tiny_glossy, "unused", lobes=4, flat_albedo_iterations=10)
+    assert [albedo_detail(cfg, i) for i in (0, 10, 15, 20, 30)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert albedo_detail(config(tiny_glossy, "unused"), 0) == 1.0  # off by default
+    tex = torch.rand(2, 4, 8, 3)
+    flat = with_albedo_detail(tex, 0.0)
+    assert torch.allclose(flat, tex.mean((1, 2), keepdim=True).expand_as(tex)) and torch.equal(with_albedo_detail(tex, 1.0), tex)
+    torch.manual_seed(0)
+    model = make_model(cfg)
+    data = TrainingData(cfg.dataset, cfg.image_size)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    renders = [multiview_losses(model, make_renderer(cfg, 0, training=True), data.batch(0, 2, 0), cfg, lap, it)[2]["render"]
+               for it in (0, None, 25)]
+    assert not torch.allclose(renders[0], renders[1]) and torch.allclose(renders[1], renders[2])
 
 
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
