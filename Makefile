@@ -109,8 +109,9 @@ train-ablations: $(VENV)/.installed
 # two views, each albedo pulled down to the darker of the two views, the light head at 10x the learning
 # rate (with exponential scales), a curriculum that renders every object with its mean albedo for the first
 # 500 iterations; and diagnostics, not models: the mean albedo for the whole run (how well the light learns
-# when the albedo cannot hold reflections) and each object's GT roughness (how much of the light's error is
-# the roughness/light-blur ambiguity).
+# when the albedo cannot hold reflections), the light supervised by the GT env map (on the map, and on the
+# rough-metal probe: what the encoder can reach when told the answer) and each object's GT roughness (how
+# much of the light's error is the roughness/light-blur ambiguity).
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
@@ -126,6 +127,8 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --light-lr-scale 10 --out $(RUNS)/glossy/sg-log-light-lr10-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 500 --out $(RUNS)/glossy/sg-flat-albedo-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 1500 --out $(RUNS)/glossy/sg-flat-albedo-1500-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision map --out $(RUNS)/glossy/sg-light-supervised-map-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision probe --out $(RUNS)/glossy/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).

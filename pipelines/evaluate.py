@@ -106,7 +106,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
 
 VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "cross_view_only",
                   "oracle_roughness", "w_albedo_consistency", "w_albedo_darker", "light_lr_scale",
-                  "flat_albedo_iterations")  # model choices a run may change (ablations)
+                  "flat_albedo_iterations", "light_supervision")  # model choices a run may change (ablations)
 
 
 def run_variant(config: TrainConfig) -> str:

@@ -104,23 +104,26 @@ class ProbeScene:
 
     def render(self, light, table: torch.Tensor | None = None) -> dict:
         """{probe: (B, H, W, 4) linear RGBA} under ``light`` (EnvMap, SGLight or SHLight; world frame)."""
-        h = self.env_height
         if table is None:  # the light tabulated in the world frame, (B, 64, 128, 3)
             table = light.to_envmap(64, 128).image
+        out = self.render_table(table)
+        reflect = 2 * (self.normal * self.view).sum(-1, keepdim=True) * self.normal - self.view
+        out["mirror"] = self._image(light.eval(reflect).clamp_min(0))
+        return {name: out[name] for name in PROBES}
+
+    def render_table(self, table: torch.Tensor, names=("diffuse", "metal")) -> dict:
+        """{probe: (B, H, W, 4)} of the diffuse and rough-metal spheres under a tabulated world-frame light
+        (B, h, w, 3), e.g. a GT env map (the mirror needs the light itself)."""
+        h = self.env_height
         table = table.clamp_min(0)  # SH rings can dip below 0; no light is negative
         table = torch.nn.functional.adaptive_avg_pool2d(table.permute(0, 3, 1, 2), (h, 2 * h)).permute(0, 2, 3, 1)
         radiance = table.reshape(self.batch, 1, -1, 3)
-        out = {}
-        for name in PROBES:
-            if name == "mirror":
-                reflect = 2 * (self.normal * self.view).sum(-1, keepdim=True) * self.normal - self.view
-                rgb = light.eval(reflect).clamp_min(0)
-            else:
-                rgb = (self.weights[name] * radiance).sum(2)
-            image = torch.zeros(self.batch, self.resolution, self.resolution, 4)
-            image[:, self.inside] = torch.cat([rgb, torch.ones_like(rgb[..., :1])], -1)
-            out[name] = image
-        return out
+        return {name: self._image((self.weights[name] * radiance).sum(2)) for name in names}
+
+    def _image(self, rgb: torch.Tensor) -> torch.Tensor:
+        image = rgb.new_zeros(self.batch, self.resolution, self.resolution, 4)
+        image[:, self.inside] = torch.cat([rgb, torch.ones_like(rgb[..., :1])], -1)
+        return image
 
 
 def _foreground(pred_rgba, gt_rgba):

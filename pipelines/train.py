@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import os
 import sys
@@ -30,6 +31,7 @@ from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 from .display import display_srgb, tonemap_envmap
 from .formatting import pyplot, save_figure
 from .losses import gradient_loss, hdr_srgb, image_l1, soft_iou_loss
+from .metrics import ProbeScene, si_rmse
 from .model import Encoder, ModelConfig, encoder_input
 
 
@@ -64,6 +66,10 @@ class TrainConfig:
     # ablation: L1 between the albedos predicted from the two views of an object (albedo is view-independent;
     # reflections copied into the look-up move between views), 0 = off
     w_albedo_consistency: float = 0.0
+    # diagnostic, not a model: the light supervised by the GT env map, to measure what the encoder and light
+    # head can reach when told the answer. "map": L1 of log(1 + radiance) over the map; "probe": si-RMSE of the
+    # rough-metal probe sphere (the light metric itself) seen from four directions; "" = off
+    light_supervision: str = ""
     # ablation: pull each albedo texel down to the darker of the object's two views where both views see it
     # (the darker one is held fixed). Reflections add light and move between views; the paint's colour does
     # neither, so the darker view holds less reflection. 0 = off
@@ -96,7 +102,7 @@ class TrainConfig:
 class TrainingData:
     """All training views decoded once into tensors: linear RGBA images (HDR, as rendered) and cameras."""
 
-    def __init__(self, root: str, image_size: int, split: str = "train"):
+    def __init__(self, root: str, image_size: int, split: str = "train", envmaps: bool = False):
         from .dataset import MultiViewDataset
 
         ds = MultiViewDataset(root, split=split, views_per_item=1, image="linear", with_envmap=False)
@@ -113,6 +119,8 @@ class TrainingData:
                 fov.append(item["fov"][0])
         self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
         self.roughness_of_sample = torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in ds.samples])
+        # GT env maps by index (only for the light-supervision diagnostic)
+        self.envmaps = {env: ds.envmap(env) for env in set(self.envmap_of_sample.tolist())} if envmaps else None
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
         self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
         self.fov = torch.stack(fov).view(n_samples, n_views)
@@ -143,8 +151,11 @@ class TrainingData:
         v2 = (v1 + 1 + torch.randint(self.num_views - 1, (size * world,), generator=g)[rank::world]) % self.num_views
         views = torch.stack([v1, v2], 1)
         s = samples.unsqueeze(1).expand(-1, 2)
-        return dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
-                    sample=samples, partner=partner, roughness=self.roughness_of_sample[samples])
+        out = dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
+                   sample=samples, partner=partner, roughness=self.roughness_of_sample[samples])
+        if self.envmaps is not None:
+            out["envmap"] = torch.stack([self.envmaps[e] for e in self.envmap_of_sample[samples].tolist()])
+        return out
 
 
 # ----------------------------------------------------------------------------- one step
@@ -159,6 +170,36 @@ def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:
     """(B, Ht, Wt, 3) texture -> each texture's mean plus ``detail`` times its variation about the mean."""
     mean = texture.mean((1, 2), keepdim=True)
     return mean + detail * (texture - mean)
+
+
+@functools.lru_cache(maxsize=1)
+def _probe_scene() -> ProbeScene:
+    """The probe spheres seen from four directions around the horizon, 20 degrees above it."""
+    from dibrpp.conventions import orbit_world_to_camera
+
+    return ProbeScene(orbit_world_to_camera(torch.tensor(3.0), 20.0, torch.tensor([0.0, 90.0, 180.0, 270.0])), resolution=16)
+
+
+def supervised_light_loss(pred, views: Cameras, envmaps: torch.Tensor, kind: str) -> torch.Tensor:
+    """The diagnostic light supervision (TrainConfig.light_supervision) of the 2B predictions (2i + j: item i,
+    view j) by the items' GT world-frame env maps (B, H, W, 3)."""
+    env = envmaps.repeat_interleave(2, 0)
+    light = pred.light(views.world_to_camera)
+    if kind == "map":
+        pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
+        return (torch.log1p(pred_env) - torch.log1p(env)).abs().mean()
+    if kind != "probe":
+        raise ValueError(f"light_supervision must be '', 'map' or 'probe', got {kind!r}")
+    scene = _probe_scene()
+    pred_table = light.to_envmap(64, 128).image
+    gt_table = env
+    errors = []
+    for k in range(env.shape[0]):  # the scene holds four views of one light
+        one = lambda t: t[k:k + 1].expand(len(scene.view), -1, -1, -1)  # noqa: E731
+        pred_probe = scene.render_table(one(pred_table), ["metal"])["metal"]
+        gt_probe = scene.render_table(one(gt_table), ["metal"])["metal"]
+        errors.append(si_rmse(pred_probe, gt_probe).mean())
+    return torch.stack(errors).mean()
 
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
@@ -204,6 +245,9 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
+    if config.light_supervision:
+        terms["light_supervision"] = supervised_light_loss(pred, views, batch["envmap"], config.light_supervision)
+        weights["light_supervision"] = 1.0
     if config.w_albedo_consistency:
         tex = pred.texture.view(b, 2, *pred.texture.shape[1:])  # prediction 2i + j is of item i, view j
         terms["albedo_consistency"] = (tex[:, 0] - tex[:, 1]).abs().mean()
@@ -315,7 +359,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    data = TrainingData(config.dataset, config.image_size)
+    data = TrainingData(config.dataset, config.image_size, envmaps=bool(config.light_supervision))
     model = make_model(config)
     opt = make_optimizer(model, config)
     ckpt = out / "checkpoint.pt"
@@ -428,7 +472,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
     for f in fields(TrainConfig):
         if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads",
-                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale", "flat_albedo_iterations"):
+                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale", "flat_albedo_iterations",
+                      "light_supervision"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
     ap.add_argument("--texture", choices=("projected", "global"), default=None,
                     help="albedo looked up from the input view (default) or decoded from the global code")

@@ -109,6 +109,31 @@ def test_flat_albedo_curriculum_renders_mean_albedos_then_fades_the_detail_in(ti
     assert not torch.allclose(renders[0], renders[1]) and torch.allclose(renders[1], renders[2])
 
 
+@pytest.mark.parametrize("kind", ["map", "probe"])
+def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(tiny_glossy, kind):
+    """The diagnostic --light-supervision: the batch carries each item's GT env map, and with every other
+    weight at 0 only the light head (and the encoder under it) learns."""
+    from pipelines.dataset import MultiViewDataset
+
+    data = TrainingData(str(tiny_glossy), 32, envmaps=True)
+    b = data.batch(0, 2, seed=0)
+    ds = MultiViewDataset(str(tiny_glossy), views_per_item=1)
+    for k, sample in enumerate(b["sample"].tolist()):
+        assert torch.equal(b["envmap"][k], ds.envmap(ds.samples[sample][1]))
+    assert "envmap" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
+    cfg = config(tiny_glossy, "unused", lobes=4, light_supervision=kind, w_image=0.0, w_iou=0.0, w_laplacian=0.0,
+                 w_gradient=0.0)
+    model = make_model(cfg)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), b, cfg, lap)
+    assert total.item() == pytest.approx(terms["light_supervision"].item()) and total.item() > 0
+    total.backward()
+    texture_grad = model.tex_out[2].weight.grad
+    assert model.light_head.weight.grad.abs().max() > 0 and (texture_grad is None or texture_grad.abs().max() == 0)
+    with pytest.raises(ValueError, match="light_supervision"):
+        multiview_losses(model, make_renderer(cfg, 0), b, config(tiny_glossy, "unused", lobes=4, light_supervision="sun"), lap)
+
+
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
     """The diagnostic --oracle-roughness: the batch carries object.json's roughness, the renders use it, and
     the roughness head then gets no gradient from the image."""
