@@ -192,6 +192,9 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=64, help="MC samples per pixel for the re-renderings")
     ap.add_argument("--view-stride", type=int, default=3,
                     help="evaluate every n-th view of each test sample (3: 8 of the 24 views, every 45 degrees)")
+    ap.add_argument("--split", choices=("test", "train"), default="test",
+                    help="the views to evaluate on: test (unseen objects and maps) or train (the train/test gap; "
+                         "use another --out)")
     args = ap.parse_args(argv)
     runs = find_runs(Path(args.runs))
     if not runs:
@@ -205,21 +208,23 @@ def main(argv=None) -> int:
         path = out / Path(config["dataset"]).name / f"{run.name}.json"
         iteration = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
         before = json.loads(path.read_text()) if path.exists() else {}
-        if (before.get("iteration"), before.get("view_stride"), before.get("spp")) == (iteration, args.view_stride, args.spp):
+        if (before.get("iteration"), before.get("view_stride"), before.get("spp"), before.get("split", "test")) == \
+                (iteration, args.view_stride, args.spp, args.split):
             r = before  # this checkpoint was evaluated before, the same way
         else:
             try:
-                r, figures = evaluate_run(run, eval_spp=args.spp, view_stride=args.view_stride)
+                r, figures = evaluate_run(run, eval_spp=args.spp, view_stride=args.view_stride, split=args.split)
                 r["spp"] = args.spp
             except DataError as e:
                 print(f"error: {run}: {e}", file=sys.stderr)
                 return 2
             path.parent.mkdir(parents=True, exist_ok=True)
             rows, _ = figures["examples"]
-            write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: test views (unseen objects and env maps)")
+            seen = "unseen objects and env maps" if args.split == "test" else "objects and env maps it was trained on"
+            write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: {args.split} views ({seen})")
             rows, labels = figures["failures"]
             write_figure(rows, path.with_name(f"{run.name}_failures.png"),
-                         f"{r['dataset']} / {run.name}: failure cases, the worst test view by each metric", labels)
+                         f"{r['dataset']} / {run.name}: failure cases, the worst {args.split} view by each metric", labels)
             with atomic_path(path) as tmp:
                 tmp.write_text(json.dumps(r, indent=1))
         if r["iteration"] < r["trained_iterations"]:

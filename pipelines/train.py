@@ -63,13 +63,13 @@ class TrainConfig:
     # diagnostic, not a model: render with each object's GT roughness (object.json) instead of the predicted
     # one, to measure how much of the light's error is the roughness/light-blur ambiguity
     oracle_roughness: bool = False
-    # ablation: L1 between the albedos predicted from the two views of an object (albedo is view-independent;
-    # reflections copied into the look-up move between views), 0 = off
-    w_albedo_consistency: float = 0.0
     # diagnostic, not a model: the light supervised by the GT env map, to measure what the encoder and light
     # head can reach when told the answer. "map": L1 of log(1 + radiance) over the map; "probe": si-RMSE of the
     # rough-metal probe sphere (the light metric itself) seen from four directions; "" = off
     light_supervision: str = ""
+    # ablation: L1 between the albedos predicted from the two views of an object (albedo is view-independent;
+    # reflections copied into the look-up move between views), 0 = off
+    w_albedo_consistency: float = 0.0
     # ablation: pull each albedo texel down to the darker of the object's two views where both views see it
     # (the darker one is held fixed). Reflections add light and move between views; the paint's colour does
     # neither, so the darker view holds less reflection. 0 = off
@@ -191,13 +191,12 @@ def supervised_light_loss(pred, views: Cameras, envmaps: torch.Tensor, kind: str
     if kind != "probe":
         raise ValueError(f"light_supervision must be '', 'map' or 'probe', got {kind!r}")
     scene = _probe_scene()
-    pred_table = light.to_envmap(64, 128).image
-    gt_table = env
+    pred_table = light.to_envmap(env.shape[1], env.shape[2]).image
     errors = []
     for k in range(env.shape[0]):  # the scene holds four views of one light
         one = lambda t: t[k:k + 1].expand(len(scene.view), -1, -1, -1)  # noqa: E731
         pred_probe = scene.render_table(one(pred_table), ["metal"])["metal"]
-        gt_probe = scene.render_table(one(gt_table), ["metal"])["metal"]
+        gt_probe = scene.render_table(one(env), ["metal"])["metal"]
         errors.append(si_rmse(pred_probe, gt_probe).mean())
     return torch.stack(errors).mean()
 
@@ -472,8 +471,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="JSON file of TrainConfig fields (applied after the preset)")
     for f in fields(TrainConfig):
         if f.name in ("dataset", "out", "shading", "seed", "lobes", "iterations", "image_size", "spp", "batch_objects", "threads",
-                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale", "flat_albedo_iterations",
-                      "light_supervision"):
+                      "w_albedo_consistency", "w_albedo_darker", "light_lr_scale", "flat_albedo_iterations"):
             ap.add_argument("--" + f.name.replace("_", "-"), type=type(f.default), default=None)
     ap.add_argument("--texture", choices=("projected", "global"), default=None,
                     help="albedo looked up from the input view (default) or decoded from the global code")
@@ -487,6 +485,8 @@ def main(argv=None) -> int:
                     help="render each prediction only in the other view of its pair, not in its input view (default: off)")
     ap.add_argument("--oracle-roughness", action=argparse.BooleanOptionalAction, default=None,
                     help="diagnostic: render with the GT roughness of each object instead of the predicted one")
+    ap.add_argument("--light-supervision", choices=("map", "probe"), default=None,
+                    help="diagnostic: supervise the light by the GT env map (on the map, or on the rough-metal probe)")
     ap.add_argument("--shared-light", action=argparse.BooleanOptionalAction, default=None,
                     help="light the cross-view renders with the light predicted for another object under the same "
                          "env map (default: off)")

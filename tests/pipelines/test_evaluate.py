@@ -21,3 +21,8 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
     assert (out / "glossy" / "sh-seed0_failures.png").stat().st_size > 1000
     assert "sh-seed0_failures.png" in (out / "report.html").read_text()
     assert evaluate.main(["--runs", str(tmp_path / "nothing"), "--out", str(out)]) == 2
+    # the same run on its training views (the train/test gap)
+    assert evaluate.main(["--runs", str(runs), "--out", str(tmp_path / "eval-train"), "--split", "train"]) == 0
+    t = json.loads((tmp_path / "eval-train" / "glossy" / "sh-seed0.json").read_text())
+    assert t["split"] == "train" and r["split"] == "test" and t["test_views"] > 0 and t["run"] == r["run"]
+    assert t["image"] != r["image"]  # other views
