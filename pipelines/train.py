@@ -168,6 +168,8 @@ def albedo_detail(config: TrainConfig, iteration: int) -> float:
 
 def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:
     """(B, Ht, Wt, 3) texture -> each texture's mean plus ``detail`` times its variation about the mean."""
+    if detail >= 1.0:
+        return texture  # exactly, not mean + (texture - mean)
     mean = texture.mean((1, 2), keepdim=True)
     return mean + detail * (texture - mean)
 
