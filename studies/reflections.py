@@ -153,6 +153,8 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=Sizes.spp)
     ap.add_argument("--threads", type=int, default=0)
     args = ap.parse_args(argv)
+    if args.objects < 1 or args.spp < 1:
+        ap.error("--objects and --spp must be at least 1")
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)

@@ -43,3 +43,5 @@ def test_reflection_study_runs_on_a_cycles_dataset(tiny_glossy, tmp_path):
 def test_reflection_study_reports_a_missing_dataset(tmp_path, capsys):
     assert main(["--dataset", str(tmp_path / "none"), "--out", str(tmp_path)]) == 2
     assert "error:" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--dataset", str(tmp_path), "--objects", "0"])
