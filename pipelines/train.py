@@ -185,22 +185,18 @@ def _probe_scene() -> ProbeScene:
 def supervised_light_loss(pred, views: Cameras, envmaps: torch.Tensor, kind: str) -> torch.Tensor:
     """The diagnostic light supervision (TrainConfig.light_supervision) of the 2B predictions (2i + j: item i,
     view j) by the items' GT world-frame env maps (B, H, W, 3)."""
-    env = envmaps.repeat_interleave(2, 0)
     light = pred.light(views.world_to_camera)
     if kind == "map":
+        env = envmaps.repeat_interleave(2, 0)
         pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
         return (torch.log1p(pred_env) - torch.log1p(env)).abs().mean()
     if kind != "probe":
         raise ValueError(f"light_supervision must be '', 'map' or 'probe', got {kind!r}")
     scene = _probe_scene()
-    pred_table = light.to_envmap(env.shape[1], env.shape[2]).image
-    errors = []
-    for k in range(env.shape[0]):  # the scene holds four views of one light
-        one = lambda t: t[k:k + 1].expand(len(scene.view), -1, -1, -1)  # noqa: E731
-        pred_probe = scene.render_table(one(pred_table), ["metal"])["metal"]
-        gt_probe = scene.render_table(one(env), ["metal"])["metal"]
-        errors.append(si_rmse(pred_probe, gt_probe).mean())
-    return torch.stack(errors).mean()
+    metal = lambda table, k: scene.render_table(table[k:k + 1].expand(len(scene.view), -1, -1, -1), ["metal"])["metal"]  # noqa: E731
+    gt = [metal(envmaps, i) for i in range(len(envmaps))]  # once per item: both its views share the map
+    pred_table = light.to_envmap(envmaps.shape[1], envmaps.shape[2]).image
+    return torch.stack([si_rmse(metal(pred_table, k), gt[k // 2]).mean() for k in range(len(pred_table))]).mean()
 
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
