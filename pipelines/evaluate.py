@@ -104,8 +104,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     return per_view, rows
 
 
-VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "cross_view_only",
-                  "oracle_roughness", "w_albedo_consistency", "w_albedo_darker", "light_lr_scale",
+VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "swap_light",
+                  "cross_view_only", "oracle_roughness", "w_albedo_consistency", "w_albedo_darker", "light_lr_scale",
                   "flat_albedo_iterations", "light_supervision")  # model choices a run may change (ablations)
 
 

@@ -60,6 +60,10 @@ class TrainConfig:
     light_scale: str = "softplus"  # softplus | log (ModelConfig.light_scale)
     cross_view_only: bool = False  # image losses on renders in the other view only (not the input view)
     shared_light: bool = False  # cross-view renders lit by another object's light under the same env map
+    # cross-view renders go to the same object under its other env map: the prediction's shape, albedo and
+    # material, rendered in that image's view with the light predicted from it, must reproduce it. Paint is the
+    # object's and reflections are the map's, so a reflection copied into the albedo is wrong there
+    swap_light: bool = False
     # diagnostic, not a model: render with each object's GT roughness (object.json) instead of the predicted
     # one, to measure how much of the light's error is the roughness/light-blur ambiguity
     oracle_roughness: bool = False
@@ -118,6 +122,7 @@ class TrainingData:
                 w2c.append(item["world_to_camera"][0])
                 fov.append(item["fov"][0])
         self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
+        self.object_of_sample = torch.tensor([obj for obj, _ in ds.samples])
         self.roughness_of_sample = torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in ds.samples])
         # GT env maps by index (only for the light-supervision diagnostic)
         self.envmaps = {env: ds.envmap(env) for env in set(self.envmap_of_sample.tolist())} if envmaps else None
@@ -128,23 +133,27 @@ class TrainingData:
         self.num_samples, self.num_views = n_samples, n_views
 
     def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1,
-              shared_light: bool = False) -> dict:
+              shared_light: bool = False, swap_light: bool = False) -> dict:
         """The iteration's batch, a pure function of (seed, iteration, rank): resumes are exact.
 
         With ``shared_light`` the second half of the batch are partners of the first: item k + size/2 is
-        another object lit by the same env map as item k (the item itself where a map lights one object);
-        ``partner`` (B,) gives each item's partner."""
+        another object lit by the same env map as item k; with ``swap_light`` it is the same object under
+        another env map (either way the item itself where there is no such sample); ``partner`` (B,) gives
+        each item's partner."""
+        if shared_light and swap_light:
+            raise ValueError("--shared-light and --swap-light pair the batch differently; choose one")
         g = torch.Generator().manual_seed(seed * 1_000_003 + iteration)
         samples = torch.randint(self.num_samples, (size * world,), generator=g)[rank::world]
         partner = torch.arange(len(samples))
-        if shared_light:
+        if shared_light or swap_light:
             half = len(samples) // 2
             anchors = samples[:half]
-            same_map = self.envmap_of_sample[anchors, None] == self.envmap_of_sample[None, :]  # (half, samples)
-            same_map[torch.arange(half), anchors] = False  # another object if there is one
-            alone = ~same_map.any(1)
-            same_map[alone, anchors[alone]] = True
-            pick = torch.rand(same_map.shape, generator=g) * same_map
+            key = self.envmap_of_sample if shared_light else self.object_of_sample
+            same = key[anchors, None] == key[None, :]  # (half, samples)
+            same[torch.arange(half), anchors] = False  # another sample if there is one
+            alone = ~same.any(1)
+            same[alone, anchors[alone]] = True
+            pick = torch.rand(same.shape, generator=g) * same
             samples = torch.cat([anchors, pick.argmax(1), samples[2 * half:]])
             partner[:half], partner[half:2 * half] = torch.arange(half, 2 * half), torch.arange(half)
         v1 = torch.randint(self.num_views, (size * world,), generator=g)[rank::world]
@@ -224,6 +233,14 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         cross = src != dst
         partner = batch["partner"][dst // 2]  # of the render's item (view 2i + j is of item i)
         lit_by[cross] = 2 * partner[cross] + dst[cross] % 2
+    if config.swap_light:
+        # ... in the partner's view instead, against its image and with its light: the same object under
+        # another env map. Only the light differs between the two images, so whatever the albedo copied from
+        # one map's reflections is wrong under the other and has to come from the light
+        cross = src != dst
+        partner = batch["partner"][dst // 2]
+        dst[cross] = 2 * partner[cross] + dst[cross] % 2
+        lit_by = dst.clone()
     cams = views[dst.tolist()]
     shape_pred = pred.select(src)
     if config.oracle_roughness:
@@ -391,7 +408,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True) -> d
     t_start = time.perf_counter()
     for it in bar:
         renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True)  # MC noise differs per iteration, reproducibly
-        batch = data.batch(it, config.batch_objects, config.seed, rank, world, config.shared_light)
+        batch = data.batch(it, config.batch_objects, config.seed, rank, world, config.shared_light,
+                           config.swap_light)
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
@@ -488,6 +506,9 @@ def main(argv=None) -> int:
     ap.add_argument("--shared-light", action=argparse.BooleanOptionalAction, default=None,
                     help="light the cross-view renders with the light predicted for another object under the same "
                          "env map (default: off)")
+    ap.add_argument("--swap-light", action=argparse.BooleanOptionalAction, default=None,
+                    help="render each prediction in the other view of the same object under its other env map, "
+                         "lit by the light predicted from that image (default: off)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
