@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections data eval train-ablations clean help
+.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
 
 help:
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
@@ -36,6 +36,7 @@ help:
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
+	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~1 h)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -111,7 +112,9 @@ train-ablations: $(VENV)/.installed
 # 500 iterations; and diagnostics, not models: the mean albedo for the whole run (how well the light learns
 # when the albedo cannot hold reflections), the light supervised by the GT env map (on the map, and on the
 # rough-metal probe: what the encoder can reach when told the answer) and each object's GT roughness (how
-# much of the light's error is the roughness/light-blur ambiguity).
+# much of the light's error is the roughness/light-blur ambiguity). Last, the cross-view renders swapped to
+# the same object under its other env map (--swap-light; two seeds), with the fast log-scaled light head,
+# and on the metallic set.
 train-variants: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
@@ -130,6 +133,27 @@ train-variants: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision map --out $(RUNS)/glossy/sg-light-supervised-map-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision probe --out $(RUNS)/glossy/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --swap-light --out $(RUNS)/glossy/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 1 --swap-light --out $(RUNS)/glossy/sg-swap-light-seed1 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --swap-light --light-scale log --light-lr-scale 10 --out $(RUNS)/glossy/sg-swap-light-log-lr10-seed0 --resume $(TRAIN_ARGS)
+	@test -f $(DATA)/metallic/manifest.json || { echo "error: no dataset in $(DATA)/metallic; run 'make data-metallic' first"; exit 1; }
+	$(PY) -m pipelines.train --dataset $(DATA)/metallic --shading sg --seed 0 --swap-light --out $(RUNS)/metallic/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
+
+# More env maps, same objects: the glossy set with 200 maps instead of 40 (160 for training; the objects, their
+# split and the number of images are the glossy set's), SG trained on it (default, --swap-light, and the
+# probe-supervised diagnostic), and the same three 40-map runs evaluated on its test split
+# (results/eval-maps200/; `make eval` evaluates the 200-map runs). Resumable at every step; run
+# `make train-glossy train-variants` first for the 40-map runs.
+study-maps: $(VENV)/.installed
+	@for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do test -f $(RUNS)/glossy/$$r/checkpoint.pt || \
+	  { echo "error: no run $(RUNS)/glossy/$$r; run 'make train-glossy train-variants' first"; exit 1; }; done
+	$(PY) -m datagen --dataset glossy --num-envmaps 200 --out $(DATA)/glossy-maps200
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --out $(RUNS)/glossy-maps200/sg-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --swap-light --out $(RUNS)/glossy-maps200/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --light-supervision probe --out $(RUNS)/glossy-maps200/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
+	@set -e; for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do \
+	  $(PY) -m pipelines.evaluate --runs $(RUNS)/glossy/$$r --dataset $(DATA)/glossy-maps200 --out results/eval-maps200; \
+	done
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

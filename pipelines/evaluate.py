@@ -136,7 +136,8 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     # flipped predictions of 180 degrees should not hide that most are right)
     result = {k: float(v.nanmedian() if k.startswith("direction_deg") else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
-    result.update(run=str(run), dataset=Path(ds.root).name, shading=config.shading, lobes=config.lobes,
+    result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
+                  shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
                   view_stride=view_stride, variant=run_variant(config), split=split)
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
@@ -171,13 +172,19 @@ def find_runs(root: Path) -> list[Path]:
     return sorted(p.parent for p in root.rglob("checkpoint.pt") if (p.parent / "config.json").exists())
 
 
+def dataset_label(r: dict) -> str:
+    """The evaluated dataset, and the one the run was trained on where that is another."""
+    trained = r.get("trained_on", r["dataset"])
+    return r["dataset"] if trained == r["dataset"] else f"{r['dataset']} (trained on {trained})"
+
+
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
+    cols = ["dataset", "trained_on", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
     write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
     header = ["dataset", "method", "variant", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
               "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)"]
-    rows = [[r["dataset"], r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
+    rows = [[dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
              *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS)]
             for r in results]
     text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS))) + "\n"
@@ -195,6 +202,9 @@ def main(argv=None) -> int:
     ap.add_argument("--split", choices=("test", "train"), default="test",
                     help="the views to evaluate on: test (unseen objects and maps) or train (the train/test gap; "
                          "use another --out)")
+    ap.add_argument("--dataset", metavar="DIR",
+                    help="evaluate every run on this dataset instead of the one it was trained on (e.g. the same "
+                         "objects under other env maps; use another --out)")
     args = ap.parse_args(argv)
     runs = find_runs(Path(args.runs))
     if not runs:
@@ -205,15 +215,17 @@ def main(argv=None) -> int:
     results = []
     for run in runs:
         config = json.loads((run / "config.json").read_text())
-        path = out / Path(config["dataset"]).name / f"{run.name}.json"
+        path = out / Path(args.dataset or config["dataset"]).name / f"{run.name}.json"
         iteration = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
         before = json.loads(path.read_text()) if path.exists() else {}
         if (before.get("iteration"), before.get("view_stride"), before.get("spp"), before.get("split", "test")) == \
                 (iteration, args.view_stride, args.spp, args.split):
             r = before  # this checkpoint was evaluated before, the same way
+            r.setdefault("trained_on", Path(config["dataset"]).name)  # (results written before that key)
         else:
             try:
-                r, figures = evaluate_run(run, eval_spp=args.spp, view_stride=args.view_stride, split=args.split)
+                r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride,
+                                          split=args.split)
                 r["spp"] = args.spp
             except DataError as e:
                 print(f"error: {run}: {e}", file=sys.stderr)

@@ -5,13 +5,22 @@ import sys
 import pytest
 
 
+def _tiny_glossy(out, objects: int, envmaps: int, envs_per_object: int, views: int):
+    pytest.importorskip("bpy")
+    cmd = [sys.executable, "-m", "datagen", "--dataset", "glossy", "--out", str(out), "--num-objects", str(objects),
+           "--num-envmaps", str(envmaps), "--envs-per-object", str(envs_per_object), "--views", str(views),
+           "--resolution", "32", "--spp", "4", "--workers", "1"]
+    subprocess.run(cmd, check=True, capture_output=True)
+    return out
+
+
 @pytest.fixture(scope="session")
 def tiny_glossy(tmp_path_factory):
     """A real (tiny) glossy dataset rendered by Cycles: 4 objects, 1 env map each, 4 views, 32 px."""
-    pytest.importorskip("bpy")
-    out = tmp_path_factory.mktemp("data") / "glossy"
-    cmd = [sys.executable, "-m", "datagen", "--dataset", "glossy", "--out", str(out), "--num-objects", "4",
-           "--num-envmaps", "2", "--envs-per-object", "1", "--views", "4", "--resolution", "32", "--spp", "4",
-           "--workers", "1"]
-    subprocess.run(cmd, check=True, capture_output=True)
-    return out
+    return _tiny_glossy(tmp_path_factory.mktemp("data") / "glossy", 4, 2, 1, 4)
+
+
+@pytest.fixture(scope="session")
+def tiny_glossy_two_maps(tmp_path_factory):
+    """Every object under two env maps: 4 objects, 2 maps each (of 3), 2 views, 32 px."""
+    return _tiny_glossy(tmp_path_factory.mktemp("data") / "glossy-two-maps", 4, 3, 2, 2)

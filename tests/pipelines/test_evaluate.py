@@ -4,7 +4,7 @@ import json
 from pipelines import evaluate, train
 
 
-def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
+def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_maps, tmp_path):
     runs = tmp_path / "runs"
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--image-size", "32",
                        "--shading", "sh", "--iterations", "2", "--out", str(runs / "glossy" / "sh-seed0"),
@@ -26,3 +26,10 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tmp_path):
     t = json.loads((tmp_path / "eval-train" / "glossy" / "sh-seed0.json").read_text())
     assert t["split"] == "train" and r["split"] == "test" and t["test_views"] > 0 and t["run"] == r["run"]
     assert t["image"] != r["image"]  # other views
+    # ... and on another dataset's test split (the same kind of objects under other env maps)
+    assert evaluate.main(["--runs", str(runs), "--out", str(tmp_path / "eval-other"),
+                          "--dataset", str(tiny_glossy_two_maps)]) == 0
+    o = json.loads((tmp_path / "eval-other" / "glossy-two-maps" / "sh-seed0.json").read_text())
+    assert o["dataset"] == "glossy-two-maps" and o["trained_on"] == "glossy" and r["trained_on"] == "glossy"
+    assert o["test_views"] > 0 and o["image"] != r["image"]
+    assert "| glossy-two-maps (trained on glossy) | sh |" in (tmp_path / "eval-other" / "all_runs.md").read_text()
