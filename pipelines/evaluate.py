@@ -136,6 +136,9 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     # flipped predictions of 180 degrees should not hide that most are right)
     result = {k: float(v.nanmedian() if k.startswith("direction_deg") else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
+    for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure
+        v = per_view[k]
+        result[k + "_views"] = [round(float(x), 2) for x in v[torch.isfinite(v)]]
     result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
@@ -166,6 +169,35 @@ def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | Non
                 ax.set_ylabel(row_labels[i], fontsize=8)
     fig.suptitle(title, fontsize=10)
     save_figure(fig, path, dpi=110)
+
+
+def write_direction_figures(results: list[dict], out: Path) -> list[Path]:
+    """``direction_<dataset>.png``: per dataset, the share of test views (those with a dominant light) whose
+    dominant-light direction error is at most x degrees, for each default seed-0 run and the constant guess."""
+    plt = pyplot()
+    written = []
+    for dataset in sorted({r["dataset"] for r in results}):
+        runs = [r for r in results if r["dataset"] == dataset and not r.get("variant") and r["seed"] == 0
+                and r.get("trained_on", dataset) == dataset and r.get("direction_deg_views")]
+        if not runs:
+            continue
+        fig, ax = plt.subplots(figsize=(5.2, 3.6))
+        curves = [(f"{r['shading'].upper()} (median {r['direction_deg']:.0f}°)", r["direction_deg_views"], "-")
+                  for r in sorted(runs, key=lambda r: r["shading"])]
+        const = runs[0]
+        curves.append((f"constant: straight above (median {const['direction_deg_constant']:.0f}°)",
+                       const["direction_deg_constant_views"], "--"))
+        for label, errors, style in curves:
+            e = torch.tensor(sorted(errors))
+            ax.step(torch.cat([torch.zeros(1), e]).numpy(), torch.arange(len(e) + 1).numpy() / len(e),
+                    style, where="post", label=label)
+        ax.axvline(30, color="grey", lw=0.8, ls=":")
+        ax.set(xlim=(0, 180), ylim=(0, 1), xlabel="dominant-light direction error (°)",
+               ylabel="share of views with at most this error",
+               title=f"{dataset}: {len(const['direction_deg_views'])} test views with a sun or lamp")
+        ax.legend(fontsize=8, loc="lower right")
+        written.append(save_figure(fig, out / f"direction_{dataset}.png", dpi=110))
+    return written
 
 
 def find_runs(root: Path) -> list[Path]:
@@ -244,6 +276,7 @@ def main(argv=None) -> int:
         print(f"{run}: " + ", ".join(f"{k} {r.get(k, float('nan')):.4f}" for k in (*METRICS, *LIGHT_METRICS)))
         results.append(r)
     print(write_table(results, out))
+    write_direction_figures(results, out)
     print(write_tables(out))
     report = write_report(out)
     print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")

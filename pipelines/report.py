@@ -43,6 +43,9 @@ def write_report(eval_dir: Path) -> Path:
              "<p>Test split: unseen objects under unseen environment maps. All metrics: lower is better.</p>",
              "<h2>Tables</h2>"]
     parts += [_table_html(t) for t in build_tables(results).values()]
+    directions = sorted(eval_dir.glob("direction_*.png"))  # pipelines.evaluate.write_direction_figures
+    if directions:
+        parts.append("<h2>Dominant-light direction</h2><div class='run'>" + "".join(_img(p) for p in directions) + "</div>")
     parts.append("<h2>Runs</h2>")
     for key in sorted(results):
         r = results[key]

@@ -16,6 +16,7 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     for k in ("iou", "light", "texture", "light_constant"):
         assert 0 <= r[k] <= 1, (k, r[k])
     assert r["image"] > 0 and 0 < r["chamfer"] < 1
+    assert len(r["direction_deg_views"]) == len(r["direction_deg_constant_views"]) == r["views_with_dominant_light"]
     assert "| glossy | sh |" in (out / "all_runs.md").read_text()
     assert (out / "glossy" / "sh-seed0.png").stat().st_size > 1000 and (out / "tables.md").exists()
     assert (out / "glossy" / "sh-seed0_failures.png").stat().st_size > 1000
@@ -33,3 +34,17 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     assert o["dataset"] == "glossy-two-maps" and o["trained_on"] == "glossy" and r["trained_on"] == "glossy"
     assert o["test_views"] > 0 and o["image"] != r["image"]
     assert "| glossy-two-maps (trained on glossy) | sh |" in (tmp_path / "eval-other" / "all_runs.md").read_text()
+
+
+def test_direction_figure_shows_default_seed0_runs_with_views_that_have_a_dominant_light(tmp_path):
+    def result(dataset, shading, errors, variant=""):
+        median = float(sorted(errors)[len(errors) // 2]) if errors else float("nan")
+        return dict(dataset=dataset, shading=shading, seed=0, variant=variant, direction_deg=median,
+                    direction_deg_views=errors, direction_deg_constant=60.0,
+                    direction_deg_constant_views=[50.0, 60.0, 70.0][:len(errors)])
+
+    results = [result("glossy", "sg", [10.0, 20.0, 90.0]), result("glossy", "sh", [30.0, 40.0, 120.0]),
+               result("glossy", "sg", [1.0, 2.0, 3.0], variant="light_colour=free"),  # an ablation: not shown
+               result("diffuse", "sg", [])]  # no view with a dominant light: no figure
+    written = evaluate.write_direction_figures(results, tmp_path)
+    assert written == [tmp_path / "direction_glossy.png"] and written[0].stat().st_size > 1000
