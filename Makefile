@@ -36,7 +36,7 @@ help:
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
-	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~1 h)"
+	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, three SG runs, cross-evaluation (~45 min)"
 
 setup: system-libs $(VENV)/.installed
 
