@@ -134,6 +134,10 @@ class MultiViewDataset(torch.utils.data.Dataset):
             return m, fov
         return self._cached(("cam", obj, env, view), load)
 
+    def view_image(self, obj: int, env: int, view: int) -> torch.Tensor:
+        """(S, S, 4) RGBA image of one view, linear or sRGB as this dataset was opened."""
+        return self._image(self.layout.view_image(obj, env, view, srgb=self.image == "srgb"), "RGBA")
+
     def envmap(self, env: int) -> torch.Tensor:
         return self._cached(("env", env), lambda: torch.from_numpy(
             read_exr(self.layout.envmap(env), "RGB")))
@@ -176,7 +180,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         views = self.views_for(idx)
         imgs, albs, w2cs, fovs = [], [], [], []
         for v in views:
-            imgs.append(self._image(self.layout.view_image(obj, env, v, srgb=self.image == "srgb"), "RGBA"))
+            imgs.append(self.view_image(obj, env, v))
             albs.append(self._image(self.layout.view_albedo(obj, env, v), "RGB"))
             m, fov = self.camera(obj, env, v)
             w2cs.append(m)

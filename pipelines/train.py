@@ -226,20 +226,19 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         keep = src != dst
         src, dst = src[keep], dst[keep]
     lit_by = dst.clone()
+    if config.shared_light or config.swap_light:
+        cross = src != dst
+        partner_view = 2 * batch["partner"][dst // 2] + dst % 2  # the same view of the render's partner item
     if config.shared_light:
         # ... but across views with the light predicted from the partner: another object under the same
         # env map. One world light must then light both objects, so it cannot carry one object's blur or
         # tint: what differs between them has to go to their materials.
-        cross = src != dst
-        partner = batch["partner"][dst // 2]  # of the render's item (view 2i + j is of item i)
-        lit_by[cross] = 2 * partner[cross] + dst[cross] % 2
+        lit_by[cross] = partner_view[cross]
     if config.swap_light:
         # ... in the partner's view instead, against its image and with its light: the same object under
         # another env map. Only the light differs between the two images, so whatever the albedo copied from
         # one map's reflections is wrong under the other and has to come from the light
-        cross = src != dst
-        partner = batch["partner"][dst // 2]
-        dst[cross] = 2 * partner[cross] + dst[cross] % 2
+        dst[cross] = partner_view[cross]
         lit_by = dst.clone()
     cams = views[dst.tolist()]
     shape_pred = pred.select(src)

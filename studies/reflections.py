@@ -117,8 +117,7 @@ def run_dataset(dataset: str, out: Path, s: Sizes) -> str:
             for part, select in zip(parts, (up, ~up)):
                 totals[(name, part, "dibrpp")] += pair_sums(r_t, l_t, seen, select)
             if name.startswith("dataset"):
-                cycles = torch.stack([ds._image(ds.layout.view_image(obj, env, v, srgb=False), "RGBA")
-                                      for v in range(n_views)])
+                cycles = torch.stack([ds.view_image(obj, env, v) for v in range(n_views)])  # linear
                 c_t, _ = texel_means(lum(cycles[..., :3]), uv.rgb[..., :2], mask, s.bins)
                 for part, select in zip(parts, (up, ~up)):
                     totals[(name, part, "cycles")] += pair_sums(r_t, c_t, seen, select)
