@@ -20,8 +20,9 @@ import torch
 
 from . import sg as sgmath
 from .brdf import ShadingPoint, geometry_term
+from . import native
 from .jit import CompiledOrEager
-from .lights import _Light
+from .lights import EnvMap, _Light
 
 
 @dataclass
@@ -80,11 +81,18 @@ class MCShader:
     compile: evaluate the samples (direction sampling, BRDF, light look-ups, MIS weights) through
     torch.compile: one fused loop per slice instead of ~100 tensor passes, forward and replay (~1.6x
     faster per render on CPU once compiled; the first render compiles for about a minute).
+
+    native (default True): where it applies, evaluate each chunk of samples with dibrpp's C++ kernel
+    (:mod:`dibrpp.native`) instead: CPU float32 G-buffers under an :class:`~dibrpp.lights.EnvMap`, when
+    nothing but the env map needs a gradient (renders without gradients, and light estimation from images
+    of known objects, e.g. Table B). Same samples, same values to float rounding; much faster than either
+    PyTorch path and no compilation at run time. Elsewhere (CUDA, SG/SH lights, gradients w.r.t. shape or
+    material) the PyTorch code runs.
     """
 
     def __init__(self, spp: int = 64, mis: bool = True, seed: int | None = None, max_batch_samples: int = 1 << 21,
                  replay: bool = True, eval_batch_samples: int = 1 << 18, compile: bool = False,
-                 grad_seed: int | None = None):
+                 grad_seed: int | None = None, native: bool = True):
         if spp < 1:
             raise ValueError(f"spp must be >= 1, got {spp}")
         if grad_seed is not None and not replay:
@@ -92,7 +100,7 @@ class MCShader:
         self.spp, self.mis, self.seed = int(spp), bool(mis), seed
         self.max_batch_samples = max_batch_samples
         self.replay, self.eval_batch_samples = bool(replay), int(eval_batch_samples)
-        self.compile, self.grad_seed = bool(compile), grad_seed
+        self.compile, self.grad_seed, self.native = bool(compile), grad_seed, bool(native)
 
     def __call__(self, g: GBuffer, light) -> torch.Tensor:
         plan = _MCPlan(self, g, light)
@@ -150,6 +158,36 @@ class _MCPlan:
             self.light_fields = tuple(n for n in light._tensors + ("world_to_light",) if getattr(light, n) is not None)
             if self.mis and hasattr(light, "_sampling_tables"):
                 light._sampling_tables()
+        self.kernel = self._native_kernel(shader.replay) if shader.native else None
+
+    def _native_kernel(self, replay: bool):
+        """dibrpp's C++ module where it computes this estimate (see :class:`MCShader`'s ``native``), else None.
+
+        Its gradient (the env map's) exists only through :class:`_MCReplay`, hence ``replay``."""
+        p, light = self.point, self.light
+        points = [getattr(p, n) for n in _POINT_FIELDS]
+        if not (isinstance(light, EnvMap) and self.n_pix > 0 and self.device.type == "cpu"
+                and (replay or not light.image.requires_grad)
+                and light.device.type == "cpu" and light.batch in (1, self.g.num_images)
+                and all(t.dtype == torch.float32 and not t.requires_grad for t in points)
+                and light.image.dtype == torch.float32
+                and (light.world_to_light is None or not light.world_to_light.requires_grad)):
+            return None
+        return native.mc_envmap()
+
+    def _native_chunk(self, kernel_fn, light, kind: str, u: torch.Tensor, *extra):
+        """Call ``forward`` or ``backward_image`` of the C++ module on one chunk of uniforms."""
+        p = self.point
+        points = [getattr(p, n).contiguous() for n in _POINT_FIELDS]
+        rot = light.world_to_light
+        rot = light.image.new_zeros(0) if rot is None else rot.detach().contiguous()
+        tables = []
+        if self.mis:
+            t = light._sampling_tables()
+            tables = [t.cdf, t.row_cdf, t.pdf, t.cos_edges.contiguous()]
+        return kernel_fn(points, self.g.batch.contiguous(), light.image.detach().contiguous(), rot, tables,
+                         u.contiguous(), 0 if kind == "brdf" else 1, p.geometry == "smith", self.mis,
+                         self.n_brdf, self.n_light, *extra)
 
     def inputs(self) -> list:
         return [getattr(self.point, n) for n in _POINT_FIELDS] + [getattr(self.light, n) for n in self.light_fields]
@@ -204,6 +242,9 @@ class _MCPlan:
         for i, (kind, _) in enumerate(self.chunks):
             self.states.append(self.gen.get_state())
             u = self.draw(i, self.gen)
+            if self.kernel is not None:
+                total = total + self._native_chunk(self.kernel.forward, light, kind, u)
+                continue
             parts = [self.sample_terms(self, point, light, kind, u[:, sl]) for sl in self.slices(i)]
             # one sum over the chunk's samples: the same additions, whatever the slices
             total = total + (parts[0] if len(parts) == 1 else torch.cat(parts, 1)).sum(1)
@@ -242,6 +283,15 @@ class _MCReplay(torch.autograd.Function):
         saved = [o if t is None else t for t, o in zip(ctx.saved_tensors, ctx.others)]
         needs = ctx.needs_input_grad[1:]
         grads: list[torch.Tensor | None] = [None] * len(saved)
+        if plan.kernel is not None:  # only the env map needs a gradient (checked by _native_kernel)
+            image_at = len(_POINT_FIELDS) + plan.light_fields.index("image")
+            _, light = plan.bind(saved)
+            grad_out = grad_out.contiguous()
+            for (kind, _), u in zip(plan.chunks, plan.backward_uniforms()):
+                g = plan._native_chunk(plan.kernel.backward_image, light, kind, u, grad_out)
+                grads[image_at] = g if grads[image_at] is None else grads[image_at] + g
+            grads[image_at] = grads[image_at].reshape(saved[image_at].shape)
+            return (None, *grads)
         with torch.enable_grad():
             leaves = [t.detach().requires_grad_(True) if need else t for t, need in zip(saved, needs)]
             wrt = [t for t, need in zip(leaves, needs) if need]
