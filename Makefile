@@ -57,6 +57,8 @@ $(VENV)/.installed: pyproject.toml
 	$(PIP) install -q "torch==2.13.0"
 	$(PIP) install -q -e ".[blender,dev,bench]"
 	$(PY) -c "import torch, bpy, OpenEXR, trimesh, xatlas, skimage; print('torch', torch.__version__, '| bpy', bpy.app.version_string)"
+	# dibrpp's C++ kernels (torch's extension mechanism; ~30 s once, into ~/.cache/torch_extensions)
+	$(PY) -m dibrpp build-kernels
 	touch $@
 
 test: $(VENV)/.installed

@@ -1,4 +1,7 @@
-"""Table B, the dibrpp side: the env-map optimisation with ``Renderer("mc")`` and torch Adam."""
+"""Table B, the dibrpp side: the env-map optimisation with ``Renderer(MCShader(...))`` and torch Adam.
+
+With ``Task.dibrpp_native`` (default) the shading runs in dibrpp's C++ kernel (only the map needs a gradient);
+otherwise in PyTorch through torch.compile, the path this benchmark measured before the kernel existed."""
 from __future__ import annotations
 
 import math
@@ -30,7 +33,8 @@ class DibrppBackend:
         return conv.equirect_directions(self.task.env_height, self.task.env_width)
 
     def render(self, env: torch.Tensor, spp: int, seed: int | None = None, grad_seed: int | None = None) -> torch.Tensor:
-        renderer = Renderer(MCShader(spp=spp, mis=True, seed=seed, compile=True, grad_seed=grad_seed))
+        renderer = Renderer(MCShader(spp=spp, mis=True, seed=seed, compile=True, grad_seed=grad_seed,
+                                     native=self.task.dibrpp_native))
         if self.gbuffer is None:  # only the light is optimised: rasterize once, as Mitsuba builds its BVH once
             with torch.no_grad():
                 self.gbuffer = renderer.gbuffer(self.mesh, self.cameras, self.material)

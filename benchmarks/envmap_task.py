@@ -37,6 +37,7 @@ class Task:
     device: str = "cpu"  # dibrpp side
     variant: str = "llvm_ad_rgb"  # Mitsuba side
     dibrpp_gradient: str = "decorrelated"  # or "correlated" (plain autodiff of one render): see DibrppBackend.step
+    dibrpp_native: bool = True  # dibrpp's C++ MC kernel; False: the PyTorch path (torch.compile), as before it
     seed: int = 0
 
 

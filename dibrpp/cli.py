@@ -1,4 +1,5 @@
-"""``python -m dibrpp render``: render a mesh under an HDR environment map.
+"""``python -m dibrpp render``: render a mesh under an HDR environment map. ``python -m dibrpp build-kernels``:
+build the C++ kernels (:mod:`dibrpp.native`).
 
 Bad input prints one line ``error: ...`` and exits with status 2, writing nothing.
 """
@@ -54,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     r.add_argument("--seed", type=int, default=0, help="random seed of the MC sampler")
     r.add_argument("--out", required=True, help="output image: .exr (linear RGBA) or .png (sRGB preview)")
+    sub.add_parser("build-kernels", help="build dibrpp's C++ kernels now (make setup does), not at the first render")
     return parser
 
 
@@ -121,6 +123,10 @@ def main(argv=None) -> int:
     try:
         if args.command == "render":
             render_command(args)
+        elif args.command == "build-kernels":
+            from .native import build
+
+            return build()
     except (CLIError, DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -1,6 +1,6 @@
 """dibrpp's C++ kernels (``dibrpp/csrc``), built with torch's extension mechanism.
 
-``make setup`` builds them (``python -m dibrpp.native``) into torch's extension cache
+``make setup`` builds them (``python -m dibrpp build-kernels``) into torch's extension cache
 (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``); a later import only loads the built
 library, and rebuilds it if a source changed. Where the build fails (no C++ compiler, no ninja), or with
 ``DIBRPP_NATIVE=0`` in the environment, :func:`mc_envmap` returns None and the renderer runs the same
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import os
+import shutil
 import sys
 import time
 import warnings
@@ -30,16 +31,24 @@ def mc_envmap():
     try:
         from torch.utils.cpp_extension import load
 
-        return load("dibrpp_mc_envmap", [str(s) for s in SOURCES], extra_cflags=["-O3", "-fopenmp"],
-                    extra_ldflags=["-fopenmp"], verbose=False)
+        if shutil.which("ninja") is None:  # the ninja wheel's binary, when the venv's bin is not on PATH
+            import ninja
+
+            os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
+
+        # -fopenmp: at::parallel_for runs on torch's own OpenMP pool (the library binds to the libgomp torch has
+        # loaded). The two -fno flags drop errno and trap bookkeeping only: values are the same.
+        return load("dibrpp_mc_envmap", [str(s) for s in SOURCES], verbose=False,
+                    extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math"], extra_ldflags=["-fopenmp"])
     except Exception as e:  # noqa: BLE001 -- any build failure: PyTorch computes the same values
         warnings.warn(f"dibrpp's C++ MC kernel is unavailable ({type(e).__name__}: {str(e)[:300]}); "
                       "MC shading under env maps runs in PyTorch (slower, same values)")
         return None
 
 
-def main() -> int:
-    """Build (or find) the kernels; ``make setup`` runs this so that the first render does not compile."""
+def build() -> int:
+    """Build (or find) the kernels and say where; ``make setup`` runs this (``python -m dibrpp build-kernels``)
+    so that the first render does not compile. Exit status 0 either way: without the kernels dibrpp still works."""
     t0 = time.time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -50,7 +59,3 @@ def main() -> int:
         return 0
     print(f"dibrpp C++ kernels ready ({time.time() - t0:.1f} s): {module.__file__}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -66,10 +66,12 @@ float smith_lambda(float cos, float alpha) {
   return 0.5f * (std::sqrt(1 + alpha * alpha * tan2) - 1);
 }
 
-float geometry_term(float n_dot_v, float n_dot_l, float alpha, bool smith) {
-  if (smith) return 1.f / (1 + smith_lambda(n_dot_v, alpha) + smith_lambda(n_dot_l, alpha));
-  auto g1 = [alpha](float c) { return c / (c * (1 - alpha) + alpha); };
-  return g1(clampf(n_dot_v, 0.f, 1.f)) * g1(clampf(n_dot_l, 0.f, 1.f));
+float schlick_g1(float c, float alpha) { return c / (c * (1 - alpha) + alpha); }
+
+// G(l, v) given the pixel's view_geometry (Smith lambda(n.v) or Schlick G1(n.v))
+float geometry_term(float view_geometry, float n_dot_l, float alpha, bool smith) {
+  if (smith) return 1.f / (1 + view_geometry + smith_lambda(n_dot_l, alpha));
+  return view_geometry * schlick_g1(clampf(n_dot_l, 0.f, 1.f), alpha);
 }
 
 float ggx_d(float n_dot_h, float alpha) {
@@ -85,9 +87,12 @@ struct Pixel {
   Vec3 n, v, albedo, t, b;
   float alpha, metallic, n_dot_v, eta, spec_on, p_spec;
   Vec3 diffuse_weight;
+  // hoisted out of the sample loop (the same operations, so the same values)
+  float diffuse_over_pi[3], four_n_dot_v, view_geometry;  // a_d / pi; 4 (n.v); Smith lambda(n.v), or Schlick G1(n.v)
+  bool dielectric;  // the dielectric Fresnel term is weighted by (1 - m) > 0 and specular > 0
 };
 
-Pixel make_pixel(const Scene& s, int64_t i) {
+Pixel make_pixel(const Scene& s, int64_t i) {  // the ShadingPoint of pixel i
   Pixel p;
   p.n = {s.normal[3 * i], s.normal[3 * i + 1], s.normal[3 * i + 2]};
   p.v = {s.view[3 * i], s.view[3 * i + 1], s.view[3 * i + 2]};
@@ -103,6 +108,11 @@ Pixel make_pixel(const Scene& s, int64_t i) {
   float f_d = fresnel_dielectric(p.n_dot_v, p.eta) * p.spec_on;
   float dw = (1 - p.metallic) * (1 - f_d);
   p.diffuse_weight = dw * p.albedo;
+  p.diffuse_over_pi[0] = p.diffuse_weight.x / kPi;
+  p.diffuse_over_pi[1] = p.diffuse_weight.y / kPi;
+  p.diffuse_over_pi[2] = p.diffuse_weight.z / kPi;
+  p.four_n_dot_v = 4 * p.n_dot_v;
+  p.dielectric = (1 - p.metallic) != 0 && p.spec_on != 0;
   float spec_w = (1 - p.metallic) * f0 * p.spec_on + p.metallic;
   float diff_w = (p.diffuse_weight.x + p.diffuse_weight.y + p.diffuse_weight.z) / 3;
   float prob = spec_w / std::max(spec_w + diff_w, 1e-8f);
@@ -113,6 +123,7 @@ Pixel make_pixel(const Scene& s, int64_t i) {
   float bb = p.n.x * p.n.y * a;
   p.t = {1 + sign * (p.n.x * p.n.x) * a, sign * bb, -sign * p.n.x};
   p.b = {bb, sign + (p.n.y * p.n.y) * a, -p.n.y};
+  p.view_geometry = s.smith ? smith_lambda(p.n_dot_v, p.alpha) : schlick_g1(clampf(p.n_dot_v, 0.f, 1.f), p.alpha);
   return p;
 }
 
@@ -148,15 +159,14 @@ void eval_and_pdf(const Scene& s, const Pixel& p, Vec3 l, float f[3], float* pdf
   }
   float ndl = clampf(n_dot_l, 1e-6f, 1.f);
   float vdh = clampf(v_dot_h_raw, 0.f, 1.f);
-  float spec = d * geometry_term(p.n_dot_v, ndl, p.alpha, s.smith) / (4 * p.n_dot_v);
-  float f_d = fresnel_dielectric(vdh, p.eta) * p.spec_on;
+  float spec = d * geometry_term(p.view_geometry, ndl, p.alpha, s.smith) / p.four_n_dot_v;
+  float f_d = p.dielectric ? fresnel_dielectric(vdh, p.eta) * p.spec_on : 0.f;  // else weighted by 0 below
   float e = std::exp2((-5.55473f * vdh - 6.98316f) * vdh);
   const float a3[3] = {p.albedo.x, p.albedo.y, p.albedo.z};
-  const float dw[3] = {p.diffuse_weight.x, p.diffuse_weight.y, p.diffuse_weight.z};
   for (int c = 0; c < 3; ++c) {
     float f_m = a3[c] + (1 - a3[c]) * e;
     float fres = (1 - p.metallic) * f_d + p.metallic * f_m;
-    f[c] = fres * spec + dw[c] / kPi * ndl;
+    f[c] = fres * spec + p.diffuse_over_pi[c] * ndl;
   }
   float pdf_spec = d * clampf(n_dot_h, 0.f, 1.f) / (4 * std::max(v_dot_h_raw, 1e-6f));
   float pdf_diff = std::max(n_dot_l, 0.f) / kPi;
@@ -213,48 +223,82 @@ float texel_pdf(const Scene& s, int64_t img, float u, float v) {
   return static_cast<float>(s.tex_pdf[(s.bt == 1 ? 0 : img) * s.h * s.w + row * s.w + col]);
 }
 
-// Largest i in [0, n) with a[i] <= x (searchsorted(right=True) - 1), -1 if none.
+// Largest i in [0, n) with a[i] <= x for ascending a (searchsorted(right=True) - 1), -1 if none. Branchless
+// (conditional moves): the random search paths of std::upper_bound mispredict at every level.
 inline int64_t last_not_above(const double* a, int64_t n, double x) {
-  return static_cast<int64_t>(std::upper_bound(a, a + n, x) - a) - 1;
+  const double* base = a;
+  while (n > 1) {
+    int64_t half = n / 2;
+    base = base[half] <= x ? base + half : base;
+    n -= half;
+  }
+  return static_cast<int64_t>(base - a) - (*base <= x ? 0 : 1);
 }
 
-Vec3 sample_envmap_direction(const Scene& s, int64_t img, const float* uf) {
+constexpr int kLockstep = 8;
+
+// Directions (world) of count <= kLockstep env-map samples, uniforms uf (count, 2). Their binary searches run in
+// lockstep: the load latencies of independent searches overlap instead of adding up.
+void sample_envmap_directions(const Scene& s, int64_t img, const float* uf, int count, Vec3* out) {
   int64_t t = s.bt == 1 ? 0 : img;
   const double* cdf = s.cdf + t * (s.h * s.w + 1);
   const double* row_cdf = s.row_cdf + t * (s.h + 1);
-  double u0 = uf[0], u1 = uf[1];
-  int64_t row = std::min(std::max(last_not_above(row_cdf, s.h + 1, u0), int64_t(0)), s.h - 1);
-  double row_lo = row_cdf[row];
-  double row_p = row_cdf[row + 1] - row_lo;
-  double target = row_lo + u1 * row_p;
-  // searched inside the row's span only: the same index as a search of the whole cdf clamped to the row
-  int64_t idx = row * s.w + last_not_above(cdf + row * s.w, s.w + 1, target);
-  idx = std::min(std::max(idx, row * s.w), row * s.w + (s.w - 1));
-  double lo = cdf[idx];
-  double frac_col = std::min(std::max((target - lo) / (cdf[idx + 1] - lo), 0.0), 1.0);
-  double frac_row = std::min(std::max((u0 - row_lo) / row_p, 0.0), 1.0);
-  double cos_theta = s.cos_edges[row] + frac_row * (s.cos_edges[row + 1] - s.cos_edges[row]);
-  double u = (static_cast<double>(idx - row * s.w) + frac_col) / s.w;
-  double phi = (0.5 - u) * 2 * kPiD;
-  // sin and cos of theta = acos(cos_theta), without the round trip (equal in double to an ulp)
-  double ct = std::min(std::max(cos_theta, -1.0), 1.0);
-  double st = std::sqrt(std::max(1 - ct * ct, 0.0));
-  Vec3 d = {static_cast<float>(st * std::cos(phi)), static_cast<float>(st * std::sin(phi)), static_cast<float>(ct)};
-  return light_to_world(s, img, d);
+  double u0[kLockstep], u1[kLockstep], target[kLockstep], row_lo[kLockstep], row_p[kLockstep];
+  int64_t row[kLockstep], idx[kLockstep];
+  for (int k = 0; k < count; ++k) {
+    u0[k] = uf[2 * k];
+    u1[k] = uf[2 * k + 1];
+    row[k] = std::min(std::max(last_not_above(row_cdf, s.h + 1, u0[k]), int64_t(0)), s.h - 1);
+  }
+  for (int k = 0; k < count; ++k) {
+    row_lo[k] = row_cdf[row[k]];
+    row_p[k] = row_cdf[row[k] + 1] - row_lo[k];
+    target[k] = row_lo[k] + u1[k] * row_p[k];
+    // searched inside the row's span only: the same index as a search of the whole cdf clamped to the row
+    idx[k] = row[k] * s.w + last_not_above(cdf + row[k] * s.w, s.w + 1, target[k]);
+  }
+  for (int k = 0; k < count; ++k) {
+    int64_t r = row[k], i = std::min(std::max(idx[k], r * s.w), r * s.w + (s.w - 1));
+    double lo = cdf[i];
+    double frac_col = std::min(std::max((target[k] - lo) / (cdf[i + 1] - lo), 0.0), 1.0);
+    double frac_row = std::min(std::max((u0[k] - row_lo[k]) / row_p[k], 0.0), 1.0);
+    double cos_theta = s.cos_edges[r] + frac_row * (s.cos_edges[r + 1] - s.cos_edges[r]);
+    double u = (static_cast<double>(i - r * s.w) + frac_col) / s.w;
+    double phi = (0.5 - u) * 2 * kPiD;
+    // sin and cos of theta = acos(cos_theta), without the round trip (equal in double to an ulp)
+    double ct = std::min(std::max(cos_theta, -1.0), 1.0);
+    double st = std::sqrt(std::max(1 - ct * ct, 0.0));
+    Vec3 d = {static_cast<float>(st * std::cos(phi)), static_cast<float>(st * std::sin(phi)), static_cast<float>(ct)};
+    out[k] = light_to_world(s, img, d);
+  }
 }
 
-// One sample of pixel i: its term f L w is fw x the bilinear look-up at taps.
-void sample_term(const Scene& s, const Pixel& p, int64_t img, bool brdf, const float* u, float fw[3], Taps* taps) {
-  Vec3 dir = brdf ? sample_brdf_direction(p, u) : sample_envmap_direction(s, img, u);
-  float f[3], pdf;
-  eval_and_pdf(s, p, dir, f, &pdf);
-  float u_env, v_env;
-  equirect_uv(world_to_light(s, img, normalized(dir)), &u_env, &v_env);
-  float denom = s.n_brdf * pdf;
-  if (s.mis) denom += s.n_light * texel_pdf(s, img, u_env, v_env);
-  float weight = 1.f / std::max(denom, 1e-12f);
-  *taps = bilinear_taps(s, img, u_env, v_env);
-  for (int c = 0; c < 3; ++c) fw[c] = f[c] * weight;
+// fn(fw, taps) for each of the spp samples of pixel i (uniforms u: (spp, dim) of this pixel).
+template <typename F>
+void for_each_sample(const Scene& s, int64_t i, bool brdf, const float* u, int64_t spp, int64_t dim, F fn) {
+  Pixel p = make_pixel(s, i);
+  int64_t img = s.batch[i];
+  Vec3 dirs[kLockstep];
+  for (int64_t k0 = 0; k0 < spp; k0 += kLockstep) {
+    int count = static_cast<int>(std::min<int64_t>(kLockstep, spp - k0));
+    if (brdf) {
+      for (int k = 0; k < count; ++k) dirs[k] = sample_brdf_direction(p, u + (k0 + k) * dim);
+    } else {
+      sample_envmap_directions(s, img, u + k0 * dim, count, dirs);
+    }
+    // stage by stage over the block (independent dependency chains side by side): f and the BRDF pdf, the
+    // map's (u, v) of each direction, then the MIS weight and the bilinear taps
+    float f[kLockstep][3], pdf[kLockstep], u_env[kLockstep], v_env[kLockstep];
+    for (int k = 0; k < count; ++k) eval_and_pdf(s, p, dirs[k], f[k], &pdf[k]);
+    for (int k = 0; k < count; ++k) equirect_uv(world_to_light(s, img, normalized(dirs[k])), &u_env[k], &v_env[k]);
+    for (int k = 0; k < count; ++k) {
+      float denom = s.n_brdf * pdf[k];
+      if (s.mis) denom += s.n_light * texel_pdf(s, img, u_env[k], v_env[k]);
+      float weight = 1.f / std::max(denom, 1e-12f);
+      const float fw[3] = {f[k][0] * weight, f[k][1] * weight, f[k][2] * weight};
+      fn(fw, bilinear_taps(s, img, u_env[k], v_env[k]));  // the sample's term f L w: fw x the look-up at the taps
+    }
+  }
 }
 
 Scene make_scene(const std::vector<torch::Tensor>& point, const torch::Tensor& batch, const torch::Tensor& image,
@@ -337,20 +381,15 @@ torch::Tensor forward(std::vector<torch::Tensor> point, torch::Tensor batch, tor
   const float* uu = u.data_ptr<float>();
   parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t) {
     for (int64_t i = begin; i < end; ++i) {
-      Pixel p = make_pixel(s, i);
-      int64_t img = s.batch[i];
       float acc[3] = {0.f, 0.f, 0.f};
-      for (int64_t k = 0; k < spp; ++k) {
-        float fw[3];
-        Taps t;
-        sample_term(s, p, img, kind == 0, uu + (i * spp + k) * dim, fw, &t);
+      for_each_sample(s, i, kind == 0, uu + i * spp * dim, spp, dim, [&](const float* fw, const Taps& t) {
         for (int c = 0; c < 3; ++c) {
           const float* im = s.image + c;
           float l = (im[3 * t.idx[0]] * t.wx0 + im[3 * t.idx[1]] * t.wx1) * t.wy0 +
                     (im[3 * t.idx[2]] * t.wx0 + im[3 * t.idx[3]] * t.wx1) * t.wy1;
           acc[c] += fw[c] * l;
         }
-      }
+      });
       for (int c = 0; c < 3; ++c) o[3 * i + c] = acc[c];
     }
   });
@@ -376,18 +415,13 @@ torch::Tensor backward_image(std::vector<torch::Tensor> point, torch::Tensor bat
   parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t k_thread) {
     float* g = part + k_thread * stride;
     for (int64_t i = begin; i < end; ++i) {
-      Pixel p = make_pixel(s, i);
-      int64_t img = s.batch[i];
-      for (int64_t k = 0; k < spp; ++k) {
-        float fw[3];
-        Taps t;
-        sample_term(s, p, img, kind == 0, uu + (i * spp + k) * dim, fw, &t);
+      for_each_sample(s, i, kind == 0, uu + i * spp * dim, spp, dim, [&](const float* fw, const Taps& t) {
         const float wt[4] = {t.wx0 * t.wy0, t.wx1 * t.wy0, t.wx0 * t.wy1, t.wx1 * t.wy1};
         for (int c = 0; c < 3; ++c) {
           float gc = go[3 * i + c] * fw[c];
           for (int q = 0; q < 4; ++q) g[3 * t.idx[q] + c] += gc * wt[q];
         }
-      }
+      });
     }
   });
   return partial.sum(0);
