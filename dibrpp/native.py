@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import os
+import platform
 import shutil
 import sys
 import time
@@ -23,9 +24,25 @@ def enabled() -> bool:
     return os.environ.get("DIBRPP_NATIVE", "1") != "0"
 
 
+def simd_flags(simd: bool = True) -> list[str]:
+    """AVX2 + FMA where this CPU has them (the lane loops of the kernel become 8-wide), else the compiler's
+    baseline. FMA contraction stays off, so both builds compute the same values (a test checks it)."""
+    flags = ["-ffp-contract=off"]
+    if simd and platform.machine() in ("x86_64", "AMD64"):
+        try:
+            cpu = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpu = ""
+        words = set(cpu.split())
+        if {"avx2", "fma"} <= words:
+            flags += ["-mavx2", "-mfma"]
+    return flags
+
+
 @functools.cache
-def mc_envmap():
-    """The fused MC env-map shading module (``forward``, ``backward_image``), or None where unavailable."""
+def mc_envmap(simd: bool = True):
+    """The fused MC env-map shading module (``forward``, ``backward_image``), or None where unavailable.
+    simd=False: the build without AVX2, whatever the CPU (for tests)."""
     if not enabled():
         return None
     try:
@@ -35,13 +52,17 @@ def mc_envmap():
             import ninja
 
             os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
-
+        simd = simd_flags(simd)
+        # One name per instruction set: a cache shared by different machines never loads the wrong build.
+        name = "dibrpp_mc_envmap" + ("_avx2" if "-mavx2" in simd else "")
         # -fopenmp: at::parallel_for runs on torch's own OpenMP pool (the library binds to the libgomp torch has
-        # loaded). The two -fno flags drop errno and trap bookkeeping only: values are the same.
-        return load("dibrpp_mc_envmap", [str(s) for s in SOURCES], verbose=False,
-                    extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math"], extra_ldflags=["-fopenmp"])
+        # loaded). -fno-math-errno / -fno-trapping-math drop errno and trap bookkeeping only: the same values.
+        return load(name, [str(s) for s in SOURCES], verbose=False, extra_ldflags=["-fopenmp"],
+                    extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *simd])
     except Exception as e:  # noqa: BLE001 -- any build failure: PyTorch computes the same values
-        warnings.warn(f"dibrpp's C++ MC kernel is unavailable ({type(e).__name__}: {str(e)[:300]}); "
+        text = str(e)
+        detail = text if len(text) < 600 else text[:200] + " ... " + text[-400:]  # the compiler's error is last
+        warnings.warn(f"dibrpp's C++ MC kernel is unavailable ({type(e).__name__}: {detail}); "
                       "MC shading under env maps runs in PyTorch (slower, same values)")
         return None
 

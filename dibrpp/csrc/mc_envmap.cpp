@@ -50,7 +50,7 @@ struct Scene {
 
 // --- BRDF (dibrpp/brdf.py) -------------------------------------------------------------------------------
 
-float fresnel_dielectric(float cos_i, float eta) {
+inline float fresnel_dielectric(float cos_i, float eta) {
   float c = clampf(cos_i, 0.f, 1.f);
   float g2 = eta * eta - 1 + c * c;
   float g = std::sqrt(std::max(g2, 0.f));
@@ -59,22 +59,22 @@ float fresnel_dielectric(float cos_i, float eta) {
   return g2 > 0 ? 0.5f * a * a * (1 + b * b) : 1.f;
 }
 
-float smith_lambda(float cos, float alpha) {
+inline float smith_lambda(float cos, float alpha) {
   float c = clampf(cos, 1e-6f, 1.f);
   float c2 = c * c;
   float tan2 = (1 - c2) / c2;
   return 0.5f * (std::sqrt(1 + alpha * alpha * tan2) - 1);
 }
 
-float schlick_g1(float c, float alpha) { return c / (c * (1 - alpha) + alpha); }
+inline float schlick_g1(float c, float alpha) { return c / (c * (1 - alpha) + alpha); }
 
 // G(l, v) given the pixel's view_geometry (Smith lambda(n.v) or Schlick G1(n.v))
-float geometry_term(float view_geometry, float n_dot_l, float alpha, bool smith) {
+inline float geometry_term(float view_geometry, float n_dot_l, float alpha, bool smith) {
   if (smith) return 1.f / (1 + view_geometry + smith_lambda(n_dot_l, alpha));
   return view_geometry * schlick_g1(clampf(n_dot_l, 0.f, 1.f), alpha);
 }
 
-float ggx_d(float n_dot_h, float alpha) {
+inline float ggx_d(float n_dot_h, float alpha) {
   float a2 = alpha * alpha;
   float c = clampf(n_dot_h, 0.f, 1.f);
   float c2 = c * c;
@@ -127,74 +127,13 @@ Pixel make_pixel(const Scene& s, int64_t i) {  // the ShadingPoint of pixel i
   return p;
 }
 
-Vec3 to_world(const Pixel& p, Vec3 l) { return (l.x * p.t + l.y * p.b) + l.z * p.n; }
-
-Vec3 sample_brdf_direction(const Pixel& p, const float* u) {
-  float xi = clampf(u[0], 0.f, 1 - 1e-7f);
-  float ratio = std::sqrt(xi / (1 - xi));
-  float ar = p.alpha * ratio;
-  float cos_h = 1.f / std::sqrt(1 + ar * ar);
-  float sin_h = p.alpha * ratio * cos_h;
-  float phi = 2 * kPi * u[1];
-  float cp = std::cos(phi), sp = std::sin(phi);
-  if (u[2] < p.p_spec) {
-    Vec3 h = to_world(p, {sin_h * cp, sin_h * sp, cos_h});
-    return (2 * dot(p.v, h)) * h - p.v;
-  }
-  float r = std::sqrt(u[0]);
-  return to_world(p, {r * cp, r * sp, std::sqrt(std::max(1 - u[0], 0.f))});
-}
-
-// f(l, v) (n.l) (3 channels) and the BRDF sampling pdf of direction l.
-void eval_and_pdf(const Scene& s, const Pixel& p, Vec3 l, float f[3], float* pdf) {
-  float n_dot_l = dot(p.n, l);
-  Vec3 h = normalized(l + p.v);
-  float n_dot_h = dot(p.n, h);
-  float v_dot_h_raw = dot(p.v, h);
-  float d = ggx_d(n_dot_h, p.alpha);
-  if (!(n_dot_l > 0)) {
-    f[0] = f[1] = f[2] = 0.f;
-    *pdf = 0.f;
-    return;
-  }
-  float ndl = clampf(n_dot_l, 1e-6f, 1.f);
-  float vdh = clampf(v_dot_h_raw, 0.f, 1.f);
-  float spec = d * geometry_term(p.view_geometry, ndl, p.alpha, s.smith) / p.four_n_dot_v;
-  float f_d = p.dielectric ? fresnel_dielectric(vdh, p.eta) * p.spec_on : 0.f;  // else weighted by 0 below
-  float e = std::exp2((-5.55473f * vdh - 6.98316f) * vdh);
-  const float a3[3] = {p.albedo.x, p.albedo.y, p.albedo.z};
-  for (int c = 0; c < 3; ++c) {
-    float f_m = a3[c] + (1 - a3[c]) * e;
-    float fres = (1 - p.metallic) * f_d + p.metallic * f_m;
-    f[c] = fres * spec + p.diffuse_over_pi[c] * ndl;
-  }
-  float pdf_spec = d * clampf(n_dot_h, 0.f, 1.f) / (4 * std::max(v_dot_h_raw, 1e-6f));
-  float pdf_diff = std::max(n_dot_l, 0.f) / kPi;
-  *pdf = p.p_spec * pdf_spec + (1 - p.p_spec) * pdf_diff;
-}
-
 // --- env map (dibrpp/lights.py) ---------------------------------------------------------------------------
-
-Vec3 world_to_light(const Scene& s, int64_t img, Vec3 d) {
-  if (!s.rot) return d;
-  const float* r = s.rot + 9 * (s.br == 1 ? 0 : img);
-  return {r[0] * d.x + r[1] * d.y + r[2] * d.z, r[3] * d.x + r[4] * d.y + r[5] * d.z,
-          r[6] * d.x + r[7] * d.y + r[8] * d.z};
-}
 
 Vec3 light_to_world(const Scene& s, int64_t img, Vec3 d) {  // d @ R (row vector): R^T d
   if (!s.rot) return d;
   const float* r = s.rot + 9 * (s.br == 1 ? 0 : img);
   return {d.x * r[0] + d.y * r[3] + d.z * r[6], d.x * r[1] + d.y * r[4] + d.z * r[7],
           d.x * r[2] + d.y * r[5] + d.z * r[8]};
-}
-
-// direction_to_equirect_uv of a light-frame unit direction
-inline void equirect_uv(Vec3 d, float* u, float* v) {
-  float uu = 0.5f - std::atan2(d.y, d.x) / (2 * kPi);
-  uu = uu - std::floor(uu);  // Python's % 1.0 (1.0 itself for a tiny negative u, as torch.remainder)
-  *u = uu;
-  *v = std::acos(clampf(d.z, -1.f, 1.f)) / kPi;
 }
 
 // The four texels (flat indices into image, without the channel) and weights of a bilinear look-up.
@@ -235,69 +174,246 @@ inline int64_t last_not_above(const double* a, int64_t n, double x) {
   return static_cast<int64_t>(base - a) - (*base <= x ? 0 : 1);
 }
 
-constexpr int kLockstep = 8;
+// --- lanes: L pixels side by side ---------------------------------------------------------------------------
+//
+// Each stage below is a loop over L pixels (one sample each) with no calls and no branches, which the compiler
+// turns into SIMD code; the sines, arcus functions and exp2 are polynomials for that reason (Cephes's, within
+// 2 ulp of the library functions). Table searches and texel look-ups stay scalar per lane.
 
-// Directions (world) of count <= kLockstep env-map samples, uniforms uf (count, 2). Their binary searches run in
-// lockstep: the load latencies of independent searches overlap instead of adding up.
-void sample_envmap_directions(const Scene& s, int64_t img, const float* uf, int count, Vec3* out) {
-  int64_t t = s.bt == 1 ? 0 : img;
-  const double* cdf = s.cdf + t * (s.h * s.w + 1);
-  const double* row_cdf = s.row_cdf + t * (s.h + 1);
-  double u0[kLockstep], u1[kLockstep], target[kLockstep], row_lo[kLockstep], row_p[kLockstep];
-  int64_t row[kLockstep], idx[kLockstep];
-  for (int k = 0; k < count; ++k) {
-    u0[k] = uf[2 * k];
-    u1[k] = uf[2 * k + 1];
-    row[k] = std::min(std::max(last_not_above(row_cdf, s.h + 1, u0[k]), int64_t(0)), s.h - 1);
-  }
-  for (int k = 0; k < count; ++k) {
-    row_lo[k] = row_cdf[row[k]];
-    row_p[k] = row_cdf[row[k] + 1] - row_lo[k];
-    target[k] = row_lo[k] + u1[k] * row_p[k];
-    // searched inside the row's span only: the same index as a search of the whole cdf clamped to the row
-    idx[k] = row[k] * s.w + last_not_above(cdf + row[k] * s.w, s.w + 1, target[k]);
-  }
-  for (int k = 0; k < count; ++k) {
-    int64_t r = row[k], i = std::min(std::max(idx[k], r * s.w), r * s.w + (s.w - 1));
-    double lo = cdf[i];
-    double frac_col = std::min(std::max((target[k] - lo) / (cdf[i + 1] - lo), 0.0), 1.0);
-    double frac_row = std::min(std::max((u0[k] - row_lo[k]) / row_p[k], 0.0), 1.0);
-    double cos_theta = s.cos_edges[r] + frac_row * (s.cos_edges[r + 1] - s.cos_edges[r]);
-    double u = (static_cast<double>(i - r * s.w) + frac_col) / s.w;
-    double phi = (0.5 - u) * 2 * kPiD;
-    // sin and cos of theta = acos(cos_theta), without the round trip (equal in double to an ulp)
-    double ct = std::min(std::max(cos_theta, -1.0), 1.0);
-    double st = std::sqrt(std::max(1 - ct * ct, 0.0));
-    Vec3 d = {static_cast<float>(st * std::cos(phi)), static_cast<float>(st * std::sin(phi)), static_cast<float>(ct)};
-    out[k] = light_to_world(s, img, d);
+constexpr int L = 8;
+
+// sin and cos of x in [-2 pi, 2 pi]: reduced to [-pi/4, pi/4] by quadrant (pi/2 split in three for exactness)
+inline void sincos_poly(float x, float* s, float* c) {
+  float q = std::floor(x * 0.636619772367581343f + 0.5f);
+  float y = ((x - q * 1.5703125f) - q * 4.837512969970703125e-4f) - q * 7.54978995489188216e-8f;
+  float z = y * y;
+  float sy = ((-1.9515295891e-4f * z + 8.3321608736e-3f) * z - 1.6666654611e-1f) * z * y + y;
+  float cy = ((2.443315711809948e-5f * z - 1.388731625493765e-3f) * z + 4.166664568298827e-2f) * z * z - 0.5f * z + 1.f;
+  int qi = static_cast<int>(q);
+  float ss = (qi & 1) ? cy : sy, cc = (qi & 1) ? sy : cy;  // quadrants: (s, c), (c, -s), (-s, -c), (-c, s)
+  *s = (qi & 2) ? -ss : ss;
+  *c = ((qi + 1) & 2) ? -cc : cc;
+}
+
+inline float exp2_poly(float x) {  // 2^x for x in [-126, 127]
+  float n = std::floor(x + 0.5f), f = x - n;
+  float p = (((((1.535336188319500e-4f * f + 1.339887440266574e-3f) * f + 9.618437357674640e-3f) * f +
+               5.550332471162809e-2f) * f + 2.402264791363012e-1f) * f + 6.931472028550421e-1f) * f + 1.f;
+  return p * __builtin_bit_cast(float, (static_cast<int32_t>(n) + 127) << 23);
+}
+
+inline float atan2_poly(float y, float x) {
+  float ax = std::fabs(x), ay = std::fabs(y);
+  float a = std::min(ax, ay) / std::max(std::max(ax, ay), 1e-30f);  // in [0, 1]
+  bool big = a > 0.414213562373095049f;  // tan(pi/8): atan(a) = pi/4 + atan((a - 1) / (a + 1))
+  float t = big ? (a - 1.f) / (a + 1.f) : a;
+  float z = t * t;
+  float r = (((8.05374449538e-2f * z - 1.38776856032e-1f) * z + 1.99777106478e-1f) * z - 3.33329491539e-1f) * z * t + t;
+  r = big ? r + 0.785398163397448310f : r;
+  r = ay > ax ? 1.57079632679489662f - r : r;
+  r = x < 0 ? kPi - r : r;
+  return y < 0 ? -r : r;
+}
+
+inline float acos_poly(float z) {  // z in [-1, 1]
+  float a = std::fabs(z);
+  bool big = a > 0.5f;  // acos(a) = 2 asin(sqrt((1 - a) / 2)), else pi/2 - asin(a)
+  float w = big ? 0.5f * (1.f - a) : a * a;
+  float x = big ? std::sqrt(w) : a;
+  float asin = ((((4.2163199048e-2f * w + 2.4181311049e-2f) * w + 4.5470025998e-2f) * w + 7.4953002686e-2f) * w +
+                1.6666752422e-1f) * w * x + x;
+  float r = big ? 2.f * asin : 1.57079632679489662f - asin;
+  return z < 0 ? kPi - r : r;
+}
+
+// The ShadingPoint (Pixel) of L pixels, one array per field. Lanes past the end repeat the last pixel.
+struct PixelLanes {
+  float nx[L], ny[L], nz[L], vx[L], vy[L], vz[L], ax[L], ay[L], az[L], tx[L], ty[L], tz[L], bx[L], by[L], bz[L];
+  float alpha[L], metallic[L], eta[L], spec_on[L], p_spec[L], dop0[L], dop1[L], dop2[L], four_ndv[L], view_geo[L];
+  float dielectric[L];
+  float rot[9][L];  // world -> light rotation of each lane's image (unused without one)
+  int64_t img[L];
+  int64_t first;
+  int count;
+};
+
+void load_lanes(const Scene& s, int64_t first, int64_t n, PixelLanes* P) {
+  P->first = first;
+  P->count = static_cast<int>(std::min<int64_t>(L, n - first));
+  for (int l = 0; l < L; ++l) {
+    int64_t i = first + std::min(l, P->count - 1);
+    Pixel p = make_pixel(s, i);
+    P->nx[l] = p.n.x, P->ny[l] = p.n.y, P->nz[l] = p.n.z, P->vx[l] = p.v.x, P->vy[l] = p.v.y, P->vz[l] = p.v.z;
+    P->ax[l] = p.albedo.x, P->ay[l] = p.albedo.y, P->az[l] = p.albedo.z;
+    P->tx[l] = p.t.x, P->ty[l] = p.t.y, P->tz[l] = p.t.z, P->bx[l] = p.b.x, P->by[l] = p.b.y, P->bz[l] = p.b.z;
+    P->alpha[l] = p.alpha, P->metallic[l] = p.metallic, P->eta[l] = p.eta, P->spec_on[l] = p.spec_on;
+    P->p_spec[l] = p.p_spec, P->four_ndv[l] = p.four_n_dot_v, P->view_geo[l] = p.view_geometry;
+    P->dop0[l] = p.diffuse_over_pi[0], P->dop1[l] = p.diffuse_over_pi[1], P->dop2[l] = p.diffuse_over_pi[2];
+    P->dielectric[l] = p.dielectric ? 1.f : 0.f;
+    P->img[l] = s.batch[i];
+    for (int e = 0; e < 9; ++e) P->rot[e][l] = s.rot ? s.rot[9 * (s.br == 1 ? 0 : P->img[l]) + e] : 0.f;
   }
 }
 
-// fn(fw, taps) for each of the spp samples of pixel i (uniforms u: (spp, dim) of this pixel).
+struct Dirs {
+  float x[L], y[L], z[L];
+};
+
+// ShadingPoint.sample_directions: GGX half vector by inverse transform, or the cosine lobe (u2 picks)
+void brdf_directions(const PixelLanes& P, const float* u0, const float* u1, const float* u2, Dirs* d) {
+#pragma omp simd
+  for (int l = 0; l < L; ++l) {
+    float xi = clampf(u0[l], 0.f, 1 - 1e-7f);
+    float ratio = std::sqrt(xi / (1 - xi));
+    float ar = P.alpha[l] * ratio;
+    float cos_h = 1.f / std::sqrt(1 + ar * ar);
+    float sin_h = P.alpha[l] * ratio * cos_h;
+    float sp, cp;
+    sincos_poly(2 * kPi * u1[l], &sp, &cp);
+    // specular: l = 2 (v.h) h - v with h = (sin_h cos, sin_h sin, cos_h) in the tangent frame
+    float hl0 = sin_h * cp, hl1 = sin_h * sp;
+    float hx = (hl0 * P.tx[l] + hl1 * P.bx[l]) + cos_h * P.nx[l];
+    float hy = (hl0 * P.ty[l] + hl1 * P.by[l]) + cos_h * P.ny[l];
+    float hz = (hl0 * P.tz[l] + hl1 * P.bz[l]) + cos_h * P.nz[l];
+    float vh2 = 2 * (P.vx[l] * hx + P.vy[l] * hy + P.vz[l] * hz);
+    // diffuse: cosine-weighted (r cos, r sin, sqrt(1 - u0))
+    float r = std::sqrt(u0[l]), cz = std::sqrt(std::max(1 - u0[l], 0.f));
+    float dl0 = r * cp, dl1 = r * sp;
+    bool spec = u2[l] < P.p_spec[l];
+    d->x[l] = spec ? vh2 * hx - P.vx[l] : (dl0 * P.tx[l] + dl1 * P.bx[l]) + cz * P.nx[l];
+    d->y[l] = spec ? vh2 * hy - P.vy[l] : (dl0 * P.ty[l] + dl1 * P.by[l]) + cz * P.ny[l];
+    d->z[l] = spec ? vh2 * hz - P.vz[l] : (dl0 * P.tz[l] + dl1 * P.bz[l]) + cz * P.nz[l];
+  }
+}
+
+// EnvMap.sample: a row from the marginal, a column from the row's conditional, uniform in solid angle inside
+// the texel (float64, as the tables). The lanes' binary searches run in lockstep, overlapping their latencies.
+void envmap_directions(const Scene& s, const PixelLanes& P, const float* u0f, const float* u1f, Dirs* d) {
+  double target[L], row_lo[L], row_p[L];
+  int64_t row[L], idx[L];
+  const double *cdf[L], *row_cdf[L];
+  for (int l = 0; l < L; ++l) {
+    int64_t t = s.bt == 1 ? 0 : P.img[l];
+    cdf[l] = s.cdf + t * (s.h * s.w + 1);
+    row_cdf[l] = s.row_cdf + t * (s.h + 1);
+    row[l] = std::min(std::max(last_not_above(row_cdf[l], s.h + 1, u0f[l]), int64_t(0)), s.h - 1);
+  }
+  for (int l = 0; l < L; ++l) {
+    row_lo[l] = row_cdf[l][row[l]];
+    row_p[l] = row_cdf[l][row[l] + 1] - row_lo[l];
+    target[l] = row_lo[l] + static_cast<double>(u1f[l]) * row_p[l];
+    // searched inside the row's span only: the same index as a search of the whole cdf clamped to the row
+    idx[l] = row[l] * s.w + last_not_above(cdf[l] + row[l] * s.w, s.w + 1, target[l]);
+  }
+  double lo[L], hi[L], ce0[L], ce1[L], col[L];
+  for (int l = 0; l < L; ++l) {  // the texel's cdf step and its row's cos(theta) edges
+    int64_t r = row[l], i = std::min(std::max(idx[l], r * s.w), r * s.w + (s.w - 1));
+    lo[l] = cdf[l][i], hi[l] = cdf[l][i + 1], ce0[l] = s.cos_edges[r], ce1[l] = s.cos_edges[r + 1];
+    col[l] = static_cast<double>(i - r * s.w);
+  }
+#pragma omp simd
+  for (int l = 0; l < L; ++l) {
+    double frac_col = std::min(std::max((target[l] - lo[l]) / (hi[l] - lo[l]), 0.0), 1.0);
+    double frac_row = std::min(std::max((u0f[l] - row_lo[l]) / row_p[l], 0.0), 1.0);
+    double cos_theta = ce0[l] + frac_row * (ce1[l] - ce0[l]);
+    double u = (col[l] + frac_col) / s.w;
+    // sin and cos of theta = acos(cos_theta), without the round trip; phi's in float (an ulp of a direction)
+    double ct = std::min(std::max(cos_theta, -1.0), 1.0);
+    float st = static_cast<float>(std::sqrt(std::max(1 - ct * ct, 0.0)));
+    float sp, cp;
+    sincos_poly(static_cast<float>((0.5 - u) * 2 * kPiD), &sp, &cp);
+    float x = st * cp, y = st * sp, z = static_cast<float>(ct);
+    if (s.rot) {  // to the world: d @ R (row vector), i.e. R^T d
+      float wx = x * P.rot[0][l] + y * P.rot[3][l] + z * P.rot[6][l];
+      float wy = x * P.rot[1][l] + y * P.rot[4][l] + z * P.rot[7][l];
+      float wz = x * P.rot[2][l] + y * P.rot[5][l] + z * P.rot[8][l];
+      x = wx, y = wy, z = wz;
+    }
+    d->x[l] = x, d->y[l] = y, d->z[l] = z;
+  }
+}
+
+// ShadingPoint.eval_and_pdf: f(l, v) (n.l) per channel and the BRDF sampling pdf of direction d (0 below n)
+void eval_and_pdf(const Scene& s, const PixelLanes& P, const Dirs& d, float* f0, float* f1, float* f2, float* pdf) {
+  float g[L];  // geometry_term(n.v, clamp(n.l, 1e-6, 1))
+  if (s.smith) {
+#pragma omp simd
+    for (int l = 0; l < L; ++l) {
+      float ndl = clampf(P.nx[l] * d.x[l] + P.ny[l] * d.y[l] + P.nz[l] * d.z[l], 1e-6f, 1.f);
+      g[l] = 1.f / (1 + P.view_geo[l] + smith_lambda(ndl, P.alpha[l]));
+    }
+  } else {
+#pragma omp simd
+    for (int l = 0; l < L; ++l) {
+      float ndl = clampf(P.nx[l] * d.x[l] + P.ny[l] * d.y[l] + P.nz[l] * d.z[l], 1e-6f, 1.f);
+      g[l] = P.view_geo[l] * schlick_g1(clampf(ndl, 0.f, 1.f), P.alpha[l]);
+    }
+  }
+#pragma omp simd
+  for (int l = 0; l < L; ++l) {
+    float n_dot_l = P.nx[l] * d.x[l] + P.ny[l] * d.y[l] + P.nz[l] * d.z[l];
+    float hx = d.x[l] + P.vx[l], hy = d.y[l] + P.vy[l], hz = d.z[l] + P.vz[l];
+    float hn = std::max(std::sqrt(hx * hx + hy * hy + hz * hz), 1e-12f);  // F.normalize
+    hx = hx / hn, hy = hy / hn, hz = hz / hn;
+    float n_dot_h = P.nx[l] * hx + P.ny[l] * hy + P.nz[l] * hz;
+    float v_dot_h_raw = P.vx[l] * hx + P.vy[l] * hy + P.vz[l] * hz;
+    float dd = ggx_d(n_dot_h, P.alpha[l]);
+    float ndl = clampf(n_dot_l, 1e-6f, 1.f);
+    float vdh = clampf(v_dot_h_raw, 0.f, 1.f);
+    float spec = dd * g[l] / P.four_ndv[l];
+    float f_d = P.dielectric[l] * (fresnel_dielectric(vdh, P.eta[l]) * P.spec_on[l]);  // weighted by 1 - m
+    float e = exp2_poly((-5.55473f * vdh - 6.98316f) * vdh);
+    float m = P.metallic[l], dm = (1 - m) * f_d;
+    bool above = n_dot_l > 0;
+    f0[l] = above ? (dm + m * (P.ax[l] + (1 - P.ax[l]) * e)) * spec + P.dop0[l] * ndl : 0.f;
+    f1[l] = above ? (dm + m * (P.ay[l] + (1 - P.ay[l]) * e)) * spec + P.dop1[l] * ndl : 0.f;
+    f2[l] = above ? (dm + m * (P.az[l] + (1 - P.az[l]) * e)) * spec + P.dop2[l] * ndl : 0.f;
+    float pdf_spec = dd * clampf(n_dot_h, 0.f, 1.f) / (4 * std::max(v_dot_h_raw, 1e-6f));
+    float pdf_diff = std::max(n_dot_l, 0.f) / kPi;
+    pdf[l] = above ? P.p_spec[l] * pdf_spec + (1 - P.p_spec[l]) * pdf_diff : 0.f;
+  }
+}
+
+// direction_to_equirect_uv of the normalised direction in the light's frame
+void envmap_uv(const Scene& s, const PixelLanes& P, const Dirs& d, float* u, float* v) {
+#pragma omp simd
+  for (int l = 0; l < L; ++l) {
+    float n = std::max(std::sqrt(d.x[l] * d.x[l] + d.y[l] * d.y[l] + d.z[l] * d.z[l]), 1e-12f);
+    float x = d.x[l] / n, y = d.y[l] / n, z = d.z[l] / n;
+    if (s.rot) {
+      float rx = P.rot[0][l] * x + P.rot[1][l] * y + P.rot[2][l] * z;
+      float ry = P.rot[3][l] * x + P.rot[4][l] * y + P.rot[5][l] * z;
+      float rz = P.rot[6][l] * x + P.rot[7][l] * y + P.rot[8][l] * z;
+      x = rx, y = ry, z = rz;
+    }
+    float uu = 0.5f - atan2_poly(y, x) / (2 * kPi);
+    u[l] = uu - std::floor(uu);  // Python's % 1.0 (1.0 itself for a tiny negative u, as torch.remainder)
+    v[l] = acos_poly(clampf(z, -1.f, 1.f)) / kPi;
+  }
+}
+
+// fn(lane, fw, taps) for every valid lane: the sample's term f L w is fw x the look-up at the taps.
+// u: the chunk's uniforms (N, spp, dim); sample k of each lane's pixel.
 template <typename F>
-void for_each_sample(const Scene& s, int64_t i, bool brdf, const float* u, int64_t spp, int64_t dim, F fn) {
-  Pixel p = make_pixel(s, i);
-  int64_t img = s.batch[i];
-  Vec3 dirs[kLockstep];
-  for (int64_t k0 = 0; k0 < spp; k0 += kLockstep) {
-    int count = static_cast<int>(std::min<int64_t>(kLockstep, spp - k0));
-    if (brdf) {
-      for (int k = 0; k < count; ++k) dirs[k] = sample_brdf_direction(p, u + (k0 + k) * dim);
-    } else {
-      sample_envmap_directions(s, img, u + k0 * dim, count, dirs);
-    }
-    // stage by stage over the block (independent dependency chains side by side): f and the BRDF pdf, the
-    // map's (u, v) of each direction, then the MIS weight and the bilinear taps
-    float f[kLockstep][3], pdf[kLockstep], u_env[kLockstep], v_env[kLockstep];
-    for (int k = 0; k < count; ++k) eval_and_pdf(s, p, dirs[k], f[k], &pdf[k]);
-    for (int k = 0; k < count; ++k) equirect_uv(world_to_light(s, img, normalized(dirs[k])), &u_env[k], &v_env[k]);
-    for (int k = 0; k < count; ++k) {
-      float denom = s.n_brdf * pdf[k];
-      if (s.mis) denom += s.n_light * texel_pdf(s, img, u_env[k], v_env[k]);
-      float weight = 1.f / std::max(denom, 1e-12f);
-      const float fw[3] = {f[k][0] * weight, f[k][1] * weight, f[k][2] * weight};
-      fn(fw, bilinear_taps(s, img, u_env[k], v_env[k]));  // the sample's term f L w: fw x the look-up at the taps
-    }
+void shade_sample(const Scene& s, const PixelLanes& P, bool brdf, const float* u, int64_t spp, int64_t dim, int64_t k,
+                  F fn) {
+  float u0[L], u1[L], u2[L];
+  for (int l = 0; l < L; ++l) {
+    const float* ul = u + ((P.first + std::min(l, P.count - 1)) * spp + k) * dim;
+    u0[l] = ul[0], u1[l] = ul[1], u2[l] = brdf ? ul[2] : 0.f;
+  }
+  Dirs d;
+  if (brdf) brdf_directions(P, u0, u1, u2, &d);
+  else envmap_directions(s, P, u0, u1, &d);
+  float f0[L], f1[L], f2[L], pdf[L], ue[L], ve[L];
+  eval_and_pdf(s, P, d, f0, f1, f2, pdf);
+  envmap_uv(s, P, d, ue, ve);
+  for (int l = 0; l < P.count; ++l) {
+    float denom = s.n_brdf * pdf[l];
+    if (s.mis) denom += s.n_light * texel_pdf(s, P.img[l], ue[l], ve[l]);
+    float weight = 1.f / std::max(denom, 1e-12f);
+    const float fw[3] = {f0[l] * weight, f1[l] * weight, f2[l] * weight};
+    fn(l, fw, bilinear_taps(s, P.img[l], ue[l], ve[l]));
   }
 }
 
@@ -380,17 +496,22 @@ torch::Tensor forward(std::vector<torch::Tensor> point, torch::Tensor batch, tor
   float* o = out.data_ptr<float>();
   const float* uu = u.data_ptr<float>();
   parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t) {
-    for (int64_t i = begin; i < end; ++i) {
-      float acc[3] = {0.f, 0.f, 0.f};
-      for_each_sample(s, i, kind == 0, uu + i * spp * dim, spp, dim, [&](const float* fw, const Taps& t) {
-        for (int c = 0; c < 3; ++c) {
-          const float* im = s.image + c;
-          float l = (im[3 * t.idx[0]] * t.wx0 + im[3 * t.idx[1]] * t.wx1) * t.wy0 +
-                    (im[3 * t.idx[2]] * t.wx0 + im[3 * t.idx[3]] * t.wx1) * t.wy1;
-          acc[c] += fw[c] * l;
-        }
-      });
-      for (int c = 0; c < 3; ++c) o[3 * i + c] = acc[c];
+    PixelLanes P;
+    for (int64_t first = begin; first < end; first += L) {
+      load_lanes(s, first, end, &P);
+      float acc[L][3] = {};
+      for (int64_t k = 0; k < spp; ++k) {
+        shade_sample(s, P, kind == 0, uu, spp, dim, k, [&](int l, const float* fw, const Taps& t) {
+          for (int c = 0; c < 3; ++c) {
+            const float* im = s.image + c;
+            float look = (im[3 * t.idx[0]] * t.wx0 + im[3 * t.idx[1]] * t.wx1) * t.wy0 +
+                         (im[3 * t.idx[2]] * t.wx0 + im[3 * t.idx[3]] * t.wx1) * t.wy1;
+            acc[l][c] += fw[c] * look;
+          }
+        });
+      }
+      for (int l = 0; l < P.count; ++l)
+        for (int c = 0; c < 3; ++c) o[3 * (first + l) + c] = acc[l][c];
     }
   });
   return out;
@@ -414,14 +535,18 @@ torch::Tensor backward_image(std::vector<torch::Tensor> point, torch::Tensor bat
   int64_t stride = s.bi * s.h * s.w * 3;
   parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t k_thread) {
     float* g = part + k_thread * stride;
-    for (int64_t i = begin; i < end; ++i) {
-      for_each_sample(s, i, kind == 0, uu + i * spp * dim, spp, dim, [&](const float* fw, const Taps& t) {
-        const float wt[4] = {t.wx0 * t.wy0, t.wx1 * t.wy0, t.wx0 * t.wy1, t.wx1 * t.wy1};
-        for (int c = 0; c < 3; ++c) {
-          float gc = go[3 * i + c] * fw[c];
-          for (int q = 0; q < 4; ++q) g[3 * t.idx[q] + c] += gc * wt[q];
-        }
-      });
+    PixelLanes P;
+    for (int64_t first = begin; first < end; first += L) {
+      load_lanes(s, first, end, &P);
+      for (int64_t k = 0; k < spp; ++k) {
+        shade_sample(s, P, kind == 0, uu, spp, dim, k, [&](int l, const float* fw, const Taps& t) {
+          const float wt[4] = {t.wx0 * t.wy0, t.wx1 * t.wy0, t.wx0 * t.wy1, t.wx1 * t.wy1};
+          for (int c = 0; c < 3; ++c) {
+            float gc = go[3 * (first + l) + c] * fw[c];
+            for (int q = 0; q < 4; ++q) g[3 * t.idx[q] + c] += gc * wt[q];
+          }
+        });
+      }
     }
   });
   return partial.sum(0);
