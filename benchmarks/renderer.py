@@ -105,16 +105,19 @@ def bench_shading(res: int, sg_ks, mc_ns, repeats: int) -> list[dict]:
     n_pix = int(frags.mask.sum())
     rows = []
     env = synthetic_envmap()
-    # MC: path replay (the default: memory flat in N) beside plain autograd (every sample's intermediates kept)
-    for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC", mc_ns), ("MC-plain", mc_ns)):
+    # MC: the C++ kernel (used where only the env map needs a gradient: its backward gives the map's gradient),
+    # then PyTorch's path replay (memory flat in N) and plain autograd (every sample's intermediates kept), both
+    # with a roughness gradient too
+    for kind, values in (("SG", sg_ks), ("SG-compiled", sg_ks), ("MC-kernel", mc_ns), ("MC", mc_ns),
+                         ("MC-plain", mc_ns)):
         for v in values:
-            rough = torch.tensor([0.3], requires_grad=True)
+            rough = torch.tensor([0.3], requires_grad=kind != "MC-kernel")
             gbuffer = build_gbuffer_compiled if kind == "SG-compiled" else build_gbuffer
             if kind.startswith("SG"):
                 shader, base = SGShader(compile=kind == "SG-compiled"), random_sg_light(v)
                 make_light = lambda b=base: SGLight(b.axis, b.sharpness, b.amplitude.clone().requires_grad_(True))  # noqa: E731
             else:
-                shader = MCShader(spp=v, mis=True, seed=0, replay=kind == "MC")
+                shader = MCShader(spp=v, mis=True, seed=0, replay=kind != "MC-plain", native=kind == "MC-kernel")
                 make_light = lambda: EnvMap(env.image.clone().requires_grad_(True))  # noqa: E731
 
             def run(backward: bool):
@@ -168,7 +171,8 @@ def table_a(rows: list[dict]) -> str:
         vals = list(PAPER_TABLE_A[kind])
         body = []
         variants = ([("SG", "eager"), ("SG-compiled", "compiled")] if kind == "SG"
-                    else [("MC", "with MIS, path replay"), ("MC-plain", "with MIS, plain autograd")])
+                    else [("MC-kernel", "with MIS, C++ kernel (env-map gradient)"), ("MC", "with MIS, path replay"),
+                          ("MC-plain", "with MIS, plain autograd")])
         for prefix, label in variants:
             for pass_ in ("forward", "forward+backward"):
                 body.append([f"ours {label}, {pass_} (ms)"] + [value(f"{prefix} {sym}", v, pass_) for v in vals])
