@@ -8,6 +8,9 @@ Choices that follow Cycles rather than the paper's literal text (all listed in t
 - Shadowing: Smith GGX height-correlated (``geometry="smith"``); the paper's Schlick G (eq. 3) is ``"schlick"``.
 - Metals have no diffuse lobe: diffuse is weighted by (1 - m), and for dielectrics by 1 - F(n.v).
 - Dielectric Fresnel is exact (IOR from the specular level); metals use eq. (4) with F0 = base colour.
+
+The C++ MC kernel (``dibrpp/csrc/mc_envmap.cpp``) repeats ShadingPoint's sampling, eval and pdf: change both
+(``tests/dibrpp/test_mc_native.py`` compares them).
 """
 from __future__ import annotations
 

@@ -188,7 +188,7 @@ class EnvMap(_Light):
     directions. Importance sampling draws texels from a piecewise-constant distribution proportional
     to luminance x texel solid angle, mixed with a UNIFORM_FLOOR fraction of uniform sphere sampling;
     the tables are built on first use from the detached image and rebuilt if the image is modified
-    in place.
+    in place. The C++ MC kernel (``dibrpp/csrc/mc_envmap.cpp``) repeats the look-up, sample and pdf.
     """
 
     _tensors = ("image",)

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import torch
 
+from . import native
 from . import sg as sgmath
 from .brdf import ShadingPoint, geometry_term
-from . import native
 from .jit import CompiledOrEager
 from .lights import EnvMap, _Light
 

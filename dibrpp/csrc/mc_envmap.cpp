@@ -3,12 +3,14 @@
 // One pass per chunk of samples: BRDF or env-map direction sampling, BRDF value and pdf, bilinear radiance,
 // MIS weight (balance heuristic), summed over the samples of each pixel. The backward scatters
 // grad_out x f x weight into the four texels of each sample's bilinear look-up: the gradient w.r.t. the
-// env map alone (the Python caller uses this path only when nothing else needs a gradient).
+// env map alone (the Python caller, dibrpp/shading.py, uses this path only when nothing else needs one).
+// Pixels are shaded 8 at a time by loops the compiler vectorises (see "lanes" below).
 //
-// Every formula mirrors the PyTorch code it replaces, operation for operation, so that values agree to float
-// rounding (tests/dibrpp/test_mc_native.py): dibrpp/brdf.py (ShadingPoint.sample_directions, eval, pdf,
-// fresnel, diffuse_weight, specular_selection_probability), dibrpp/lights.py (EnvMap._bilinear, sample, pdf)
-// and dibrpp/shading.py (_MCPlan.terms). Change one, change both.
+// Every formula mirrors the PyTorch code it replaces, operation for operation, with the same uniforms, so
+// that values agree to float rounding (the transcendental functions are polynomials within 2 ulp of libm):
+// dibrpp/brdf.py (ShadingPoint.sample_directions, eval, pdf, fresnel, diffuse_weight,
+// specular_selection_probability), dibrpp/lights.py (EnvMap._bilinear, sample, pdf) and dibrpp/shading.py
+// (_MCPlan.terms). Change one, change both: tests/dibrpp/test_mc_native.py compares them.
 #include <ATen/Parallel.h>
 #include <torch/extension.h>
 
@@ -24,15 +26,9 @@ constexpr double kPiD = 3.14159265358979323846;
 struct Vec3 {
   float x, y, z;
 };
-inline Vec3 operator+(Vec3 a, Vec3 b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-inline Vec3 operator-(Vec3 a, Vec3 b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
 inline Vec3 operator*(float s, Vec3 a) { return {s * a.x, s * a.y, s * a.z}; }
 inline float dot(Vec3 a, Vec3 b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
 inline float clampf(float x, float lo, float hi) { return std::min(std::max(x, lo), hi); }
-inline Vec3 normalized(Vec3 a) {  // F.normalize(eps=1e-12)
-  float n = std::max(std::sqrt(dot(a, a)), 1e-12f);
-  return {a.x / n, a.y / n, a.z / n};
-}
 
 // Inputs shared by every pixel, as raw pointers (contiguous tensors).
 struct Scene {
@@ -67,12 +63,6 @@ inline float smith_lambda(float cos, float alpha) {
 }
 
 inline float schlick_g1(float c, float alpha) { return c / (c * (1 - alpha) + alpha); }
-
-// G(l, v) given the pixel's view_geometry (Smith lambda(n.v) or Schlick G1(n.v))
-inline float geometry_term(float view_geometry, float n_dot_l, float alpha, bool smith) {
-  if (smith) return 1.f / (1 + view_geometry + smith_lambda(n_dot_l, alpha));
-  return view_geometry * schlick_g1(clampf(n_dot_l, 0.f, 1.f), alpha);
-}
 
 inline float ggx_d(float n_dot_h, float alpha) {
   float a2 = alpha * alpha;
@@ -128,13 +118,6 @@ Pixel make_pixel(const Scene& s, int64_t i) {  // the ShadingPoint of pixel i
 }
 
 // --- env map (dibrpp/lights.py) ---------------------------------------------------------------------------
-
-Vec3 light_to_world(const Scene& s, int64_t img, Vec3 d) {  // d @ R (row vector): R^T d
-  if (!s.rot) return d;
-  const float* r = s.rot + 9 * (s.br == 1 ? 0 : img);
-  return {d.x * r[0] + d.y * r[3] + d.z * r[6], d.x * r[1] + d.y * r[4] + d.z * r[7],
-          d.x * r[2] + d.y * r[5] + d.z * r[8]};
-}
 
 // The four texels (flat indices into image, without the channel) and weights of a bilinear look-up.
 struct Taps {
@@ -473,14 +456,18 @@ void check_inputs(const std::vector<torch::Tensor>& point, const torch::Tensor& 
               "u: contiguous float32 (N, S, 2 or 3)");
 }
 
-// fn(begin, end, thread) over [0, n) in one contiguous range per thread of torch's own intra-op pool (built with
-// -fopenmp, the library binds to the libgomp that torch has loaded: one OpenMP runtime, no idle threads spinning
-// against ours).
+// fn(begin, end, part) over [0, n) cut into one contiguous range per thread of torch's own intra-op pool (built
+// with -fopenmp, the library binds to the libgomp that torch has loaded: one OpenMP runtime, no idle threads
+// spinning against ours). The part index, not the thread's, tells a range apart: safe wherever it is called.
+int64_t num_parts(int64_t n) {
+  return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), (n + 1023) / 1024));
+}
+
 template <typename F>
-void parallel_ranges(int64_t n, F fn) {
-  int64_t threads = std::max<int64_t>(1, at::get_num_threads());
-  int64_t grain = std::max<int64_t>(1024, (n + threads - 1) / threads);
-  at::parallel_for(0, n, grain, [&](int64_t begin, int64_t end) { fn(begin, end, at::get_thread_num()); });
+void parallel_ranges(int64_t n, int64_t parts, F fn) {
+  at::parallel_for(0, parts, 1, [&](int64_t p0, int64_t p1) {
+    for (int64_t p = p0; p < p1; ++p) fn(p * n / parts, (p + 1) * n / parts, p);
+  });
 }
 
 }  // namespace
@@ -495,7 +482,7 @@ torch::Tensor forward(std::vector<torch::Tensor> point, torch::Tensor batch, tor
   auto out = torch::zeros({n, 3}, image.options());
   float* o = out.data_ptr<float>();
   const float* uu = u.data_ptr<float>();
-  parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t) {
+  parallel_ranges(n, num_parts(n), [&](int64_t begin, int64_t end, int64_t) {
     PixelLanes P;
     for (int64_t first = begin; first < end; first += L) {
       load_lanes(s, first, end, &P);
@@ -528,13 +515,13 @@ torch::Tensor backward_image(std::vector<torch::Tensor> point, torch::Tensor bat
   int64_t n = u.size(0), spp = u.size(1), dim = u.size(2);
   const float* uu = u.data_ptr<float>();
   const float* go = grad_out.data_ptr<float>();
-  int64_t threads = std::max<int64_t>(1, at::get_num_threads());
-  // one gradient image per thread, summed at the end: no atomics, deterministic for a thread count
-  auto partial = torch::zeros({threads, s.bi, s.h, s.w, 3}, image.options());
+  int64_t parts = num_parts(n);
+  // one gradient image per range, summed at the end: no atomics, deterministic for a thread count
+  auto partial = torch::zeros({parts, s.bi, s.h, s.w, 3}, image.options());
   float* part = partial.data_ptr<float>();
   int64_t stride = s.bi * s.h * s.w * 3;
-  parallel_ranges(n, [&](int64_t begin, int64_t end, int64_t k_thread) {
-    float* g = part + k_thread * stride;
+  parallel_ranges(n, parts, [&](int64_t begin, int64_t end, int64_t k) {
+    float* g = part + k * stride;
     PixelLanes P;
     for (int64_t first = begin; first < end; first += L) {
       load_lanes(s, first, end, &P);
