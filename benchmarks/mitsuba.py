@@ -275,7 +275,9 @@ def write_figure(arrays: dict, rows: dict, out: Path) -> None:
     ax = axes.flat[5]
     for run in rows:
         if f"{run}_losses" in arrays:
-            line = ax.semilogy(arrays[f"{run}_losses"], label=RUNS[run].label, linewidth=0.8)[0]
+            same = run == "dibrpp-pytorch"  # the kernel's samples: its curve lies on the kernel's
+            line = ax.semilogy(arrays[f"{run}_losses"], label=RUNS[run].label + (" (on the kernel's)" if same else ""),
+                               linewidth=0.8, linestyle=":" if same else "-")[0]
             ax.axhline(rows[run]["loss_at_gt"], color=line.get_color(), linestyle="--", linewidth=0.8)
     ax.set_xlabel("iteration")
     ax.set_title("image L2 loss per iteration (dashed: at the GT map)", fontsize=10)
