@@ -52,13 +52,13 @@ def mc_envmap(simd: bool = True):
             import ninja
 
             os.environ["PATH"] = ninja.BIN_DIR + os.pathsep + os.environ.get("PATH", "")
-        simd = simd_flags(simd)
+        isa = simd_flags(simd)
         # One name per instruction set: a cache shared by different machines never loads the wrong build.
-        name = "dibrpp_mc_envmap" + ("_avx2" if "-mavx2" in simd else "")
+        name = "dibrpp_mc_envmap" + ("_avx2" if "-mavx2" in isa else "")
         # -fopenmp: at::parallel_for runs on torch's own OpenMP pool (the library binds to the libgomp torch has
         # loaded). -fno-math-errno / -fno-trapping-math drop errno and trap bookkeeping only: the same values.
         return load(name, [str(s) for s in SOURCES], verbose=False, extra_ldflags=["-fopenmp"],
-                    extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *simd])
+                    extra_cflags=["-O3", "-fopenmp", "-fno-math-errno", "-fno-trapping-math", *isa])
     except Exception as e:  # noqa: BLE001 -- any build failure: PyTorch computes the same values
         text = str(e)
         detail = text if len(text) < 600 else text[:200] + " ... " + text[-400:]  # the compiler's error is last
