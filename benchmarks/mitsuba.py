@@ -53,6 +53,7 @@ from benchmarks.envmap_task import (INIT_RADIANCE, QUICK, SIZES, Task, sky_radia
                                     visible_weight)
 from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import conventions as conv
+from dibrpp import native
 from pipelines.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
 
 PAPER = {"dibrpp": {"time_s": 5.4, "peak_mb": 1475}, "mitsuba": {"time_s": 9.8, "peak_mb": 3287}}  # Table B, GPU
@@ -96,6 +97,8 @@ def prepare_imports(name: str, task: Task) -> None:
         import_mitsuba(task)
         return
     torch.optim.Adam([torch.zeros(1, requires_grad=True)])  # the first optimiser imports torch._dynamo (seconds)
+    if task.dibrpp_native:  # dibrpp's C++ library, as Mitsuba's libraries above
+        native.mc_envmap()
     if task.device.startswith("cuda"):
         torch.zeros(1, device=task.device)
 
