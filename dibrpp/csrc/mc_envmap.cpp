@@ -75,8 +75,7 @@ inline float ggx_d(float n_dot_h, float alpha) {
 // Per-pixel quantities of a ShadingPoint that do not depend on the light direction.
 struct Pixel {
   Vec3 n, v, albedo, t, b;
-  float alpha, metallic, n_dot_v, eta, spec_on, p_spec;
-  Vec3 diffuse_weight;
+  float alpha, metallic, eta, spec_on, p_spec;
   // hoisted out of the sample loop (the same operations, so the same values)
   float diffuse_over_pi[3], four_n_dot_v, view_geometry;  // a_d / pi; 4 (n.v); Smith lambda(n.v), or Schlick G1(n.v)
   bool dielectric;  // the dielectric Fresnel term is weighted by (1 - m) > 0 and specular > 0
@@ -90,21 +89,21 @@ Pixel make_pixel(const Scene& s, int64_t i) {  // the ShadingPoint of pixel i
   p.alpha = s.alpha[i];
   p.metallic = s.metallic[i];
   float specular = s.specular[i];
-  p.n_dot_v = clampf(dot(p.n, p.v), 1e-4f, 1.f);
+  float n_dot_v = clampf(dot(p.n, p.v), 1e-4f, 1.f);
   float f0 = clampf(0.04f * 2 * specular, 0.f, 0.999f);  // dielectric_f0: ((1.5 - 1) / (1.5 + 1))^2 = 0.04
   float sq = std::sqrt(clampf(f0, 1e-8f, 0.999f));
   p.eta = (1 + sq) / (1 - sq);
   p.spec_on = specular > 0 ? 1.f : 0.f;
-  float f_d = fresnel_dielectric(p.n_dot_v, p.eta) * p.spec_on;
+  float f_d = fresnel_dielectric(n_dot_v, p.eta) * p.spec_on;
   float dw = (1 - p.metallic) * (1 - f_d);
-  p.diffuse_weight = dw * p.albedo;
-  p.diffuse_over_pi[0] = p.diffuse_weight.x / kPi;
-  p.diffuse_over_pi[1] = p.diffuse_weight.y / kPi;
-  p.diffuse_over_pi[2] = p.diffuse_weight.z / kPi;
-  p.four_n_dot_v = 4 * p.n_dot_v;
+  Vec3 diffuse_weight = dw * p.albedo;
+  p.diffuse_over_pi[0] = diffuse_weight.x / kPi;
+  p.diffuse_over_pi[1] = diffuse_weight.y / kPi;
+  p.diffuse_over_pi[2] = diffuse_weight.z / kPi;
+  p.four_n_dot_v = 4 * n_dot_v;
   p.dielectric = (1 - p.metallic) != 0 && p.spec_on != 0;
   float spec_w = (1 - p.metallic) * f0 * p.spec_on + p.metallic;
-  float diff_w = (p.diffuse_weight.x + p.diffuse_weight.y + p.diffuse_weight.z) / 3;
+  float diff_w = (diffuse_weight.x + diffuse_weight.y + diffuse_weight.z) / 3;
   float prob = spec_w / std::max(spec_w + diff_w, 1e-8f);
   p.p_spec = (spec_w > 0 && diff_w > 0) ? clampf(prob, 0.25f, 0.9f) : prob;
   // tangent frame (Duff et al. 2017), as brdf._tangent_frame
@@ -113,7 +112,7 @@ Pixel make_pixel(const Scene& s, int64_t i) {  // the ShadingPoint of pixel i
   float bb = p.n.x * p.n.y * a;
   p.t = {1 + sign * (p.n.x * p.n.x) * a, sign * bb, -sign * p.n.x};
   p.b = {bb, sign + (p.n.y * p.n.y) * a, -p.n.y};
-  p.view_geometry = s.smith ? smith_lambda(p.n_dot_v, p.alpha) : schlick_g1(clampf(p.n_dot_v, 0.f, 1.f), p.alpha);
+  p.view_geometry = s.smith ? smith_lambda(n_dot_v, p.alpha) : schlick_g1(clampf(n_dot_v, 0.f, 1.f), p.alpha);
   return p;
 }
 
