@@ -141,6 +141,9 @@ def equirect_solid_angles(height: int, width: int, device=None, dtype=torch.floa
 
 # ----------------------------------------------------------------------------- colour
 
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # Rec. 709 luminance of linear RGB
+
+
 def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
     x = x.clamp(0.0, 1.0)
     return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)

@@ -13,24 +13,22 @@ Common rules:
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
 from . import conventions as conv
+from .conventions import LUMINANCE_WEIGHTS
+from .envmap_fit import fit_sg_lobes, sh_projection
+from .envmap_sampling import UNIFORM_FLOOR, SamplingTables, build_sampling_tables, sample_directions, texel_pdf
 from .io import DataError, read_exr
-from .sg import sg_eval, sg_integral, sg_lobe_values
-from .sh import SH_COUNT, sh_basis, sh_eval, sh_irradiance
+from .sg import sg_eval, sg_integral
+from .sh import SH_COUNT, sh_eval, sh_irradiance
 
-# Fraction of the env-map sampling distribution that is uniform over the sphere, so that every
-# direction has a non-zero pdf (bilinear lookups reach dark texels next to bright ones, and MIS
-# weights need pdf > 0 wherever the BRDF samples).
-UNIFORM_FLOOR = 0.01
-LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # Rec. 709, linear RGB
+__all__ = ["LUMINANCE_WEIGHTS", "UNIFORM_FLOOR", "EnvMap", "Light", "SGLight", "SHLight", "SamplingTables",
+           "fit_sg_to_envmap", "project_envmap_to_sh"]
 
 
 def _check_finite(name: str, t: torch.Tensor) -> None:
@@ -64,15 +62,39 @@ def _as_rotation(rot, batch: int, like: torch.Tensor) -> torch.Tensor | None:
     return rot
 
 
-class _Light:
-    """Batch handling and the world -> light frame change shared by all lights."""
+class Light:
+    """Base of the light objects: batch handling, the world -> light frame change, and the protocol that
+    shaders rely on.
 
-    _tensors: tuple[str, ...] = ()  # tensor attributes that .to() moves
+    - ``eval(dirs)``: radiance (B, ..., 3) at world directions (B, ..., 3); ``batch``, ``device``,
+      ``dtype``; ``world_to_light`` ((B, 3, 3) or None); ``in_frame``, ``to``, ``to_envmap``.
+    - ``tensors()``: the tensors that define the light, by attribute name: what ``to`` moves and what
+      gradients reach. ``with_tensors(**new)``: a shallow copy with some of them replaced, which is how an
+      autograd function (the MC path replay) rebuilds the light around its own inputs.
+    """
+
+    _fields: tuple[str, ...] = ()  # the light's tensor attributes; the first sets batch, device and dtype
     world_to_light: torch.Tensor | None
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        """name -> tensor: the light's own tensors in a fixed order, then ``world_to_light`` if it is set."""
+        names = self._fields + ("world_to_light",)
+        return {name: getattr(self, name) for name in names if getattr(self, name) is not None}
+
+    def with_tensors(self, **tensors: torch.Tensor) -> "Light":
+        """A shallow copy with the named tensors (names of :meth:`tensors`) replaced, unchecked: the new
+        tensors must have the old ones' shapes (typically the same values, another autograd identity)."""
+        unknown = set(tensors) - set(self._fields + ("world_to_light",))
+        if unknown:
+            raise ValueError(f"{type(self).__name__} has no tensors {sorted(unknown)}; it has {self._fields}")
+        out = copy.copy(self)
+        for name, t in tensors.items():
+            setattr(out, name, t)
+        return out
 
     @property
     def _data_batch(self) -> int:
-        return getattr(self, self._tensors[0]).shape[0]
+        return getattr(self, self._fields[0]).shape[0]
 
     @property
     def batch(self) -> int:
@@ -81,30 +103,28 @@ class _Light:
 
     @property
     def device(self) -> torch.device:
-        return getattr(self, self._tensors[0]).device
+        return getattr(self, self._fields[0]).device
 
     @property
     def dtype(self) -> torch.dtype:
-        return getattr(self, self._tensors[0]).dtype
+        return getattr(self, self._fields[0]).dtype
 
     def _set_frame(self, world_to_light) -> None:
-        self.world_to_light = _as_rotation(world_to_light, self._data_batch, getattr(self, self._tensors[0]))
+        self.world_to_light = _as_rotation(world_to_light, self._data_batch, getattr(self, self._fields[0]))
 
     def _copied(self):
         return copy.copy(self)
 
-    def in_frame(self, world_to_light) -> "_Light":
+    def in_frame(self, world_to_light) -> "Light":
         """A copy whose frame is ``world_to_light`` ((3, 3) or (B, 3, 3), replacing any previous one)."""
         out = self._copied()
         out._set_frame(world_to_light)
         return out
 
-    def to(self, device=None, dtype=None) -> "_Light":
+    def to(self, device=None, dtype=None) -> "Light":
         out = self._copied()
-        for name in self._tensors + ("world_to_light",):
-            t = getattr(self, name)
-            if t is not None:
-                setattr(out, name, t.to(device=device, dtype=dtype))
+        for name, t in self.tensors().items():
+            setattr(out, name, t.to(device=device, dtype=dtype))
         return out
 
     def _flatten(self, x: torch.Tensor, last: int, name: str):
@@ -144,33 +164,6 @@ class _Light:
 
 # ----------------------------------------------------------------------------- environment map
 
-@dataclass
-class _SamplingTables:
-    """Piecewise-constant texel distribution of an env map (float64, detached), B = image batch."""
-
-    cdf: torch.Tensor  # (B, H*W + 1) over texels in row-major order
-    row_cdf: torch.Tensor  # (B, H + 1) marginal over rows (= cdf[:, ::W])
-    pdf: torch.Tensor  # (B, H*W) solid-angle pdf of each texel = p_texel / texel solid angle
-    cos_edges: torch.Tensor  # (H + 1,) cos(theta) of the row edges
-
-
-def _build_tables(image: torch.Tensor) -> _SamplingTables:
-    b, h, w, _ = image.shape
-    img = image.detach().double()
-    lum = (img @ img.new_tensor(LUMINANCE_WEIGHTS)).clamp_min(0)  # (B, H, W); SH maps may ring negative
-    omega = conv.equirect_solid_angles(h, w, device=img.device, dtype=torch.float64)  # (H, 1)
-    weight = (lum * omega).reshape(b, -1)
-    total = weight.sum(-1, keepdim=True)
-    uniform = (omega / (4 * math.pi)).expand(h, w).reshape(1, -1)
-    p = torch.where(total > 0, (1 - UNIFORM_FLOOR) * weight / total.clamp_min(1e-300) + UNIFORM_FLOOR * uniform, uniform)
-    cdf = F.pad(torch.cumsum(p, -1), (1, 0))
-    cdf = cdf / cdf[:, -1:]
-    p = cdf[:, 1:] - cdf[:, :-1]  # exactly the steps of the cdf, so sample() and pdf() agree
-    edges = torch.arange(h + 1, device=img.device, dtype=torch.float64) * (math.pi / h)
-    return _SamplingTables(cdf=cdf, row_cdf=cdf[:, ::w].contiguous(), pdf=(p.reshape(b, h, w) / omega).reshape(b, -1),
-                           cos_edges=torch.cos(edges))
-
-
 def _pole_safe(d: torch.Tensor) -> torch.Tensor:
     """Block the direction gradient within ~1e-3 rad (float32) of the poles, where atan2/acos have
     infinite or NaN derivatives; the values are unchanged."""
@@ -180,18 +173,18 @@ def _pole_safe(d: torch.Tensor) -> torch.Tensor:
     return torch.where(near.unsqueeze(-1), d.detach(), d)
 
 
-class EnvMap(_Light):
+class EnvMap(Light):
     """Equirectangular environment map (Blender mapping, see :mod:`dibrpp.conventions`).
 
     image: (B, H, W, 3) or (H, W, 3) linear HDR radiance, top row first.
     Radiance lookups are bilinear (wrap in u, clamp in v) and differentiable w.r.t. the texels and the
-    directions. Importance sampling draws texels from a piecewise-constant distribution proportional
-    to luminance x texel solid angle, mixed with a UNIFORM_FLOOR fraction of uniform sphere sampling;
-    the tables are built on first use from the detached image and rebuilt if the image is modified
-    in place. The C++ MC kernel (``dibrpp/csrc/mc_envmap.cpp``) repeats the look-up, sample and pdf.
+    directions. Importance sampling (:mod:`dibrpp.envmap_sampling`) draws texels in proportion to
+    luminance x texel solid angle, with a UNIFORM_FLOOR fraction of uniform sphere sampling; its tables
+    are built on first use from the detached image and rebuilt if the image is modified in place. The C++
+    MC kernel (``dibrpp/csrc/mc_envmap.cpp``) repeats the look-up, sample and pdf.
     """
 
-    _tensors = ("image",)
+    _fields = ("image",)
 
     def __init__(self, image: torch.Tensor, world_to_light: torch.Tensor | None = None):
         image = torch.as_tensor(image)
@@ -219,6 +212,13 @@ class EnvMap(_Light):
     def _copied(self):
         out = copy.copy(self)
         out._tables = None
+        return out
+
+    def with_tensors(self, **tensors: torch.Tensor) -> "EnvMap":
+        out = super().with_tensors(**tensors)
+        image = tensors.get("image")
+        if image is not None and not _same_data(image, self.image):
+            out._tables = None  # the cached tables follow the image's values: kept only for a view of the same data
         return out
 
     @property
@@ -266,62 +266,45 @@ class EnvMap(_Light):
 
     # ------------------------------------------------------------------ importance sampling
 
-    def _sampling_tables(self) -> _SamplingTables:
+    def sampling_tables(self) -> SamplingTables:
+        """The importance-sampling tables of the map (cached; rebuilt when the image changes in place)."""
         version = self.image._version
         if self._tables is None or self._tables[0] != version:
-            self._tables = (version, _build_tables(self.image))
+            self._tables = (version, build_sampling_tables(self.image))
         return self._tables[1]
 
     def sample(self, uniforms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Directions drawn from the map: uniforms (B, ..., 2) in [0, 1) -> (world dirs (B, ..., 3),
-        solid-angle pdf (B, ...)). Not differentiable (the tables are detached).
-
-        u0 picks a row from the marginal, u1 a column from that row's conditional; the remainders
-        place the direction uniformly in solid angle inside the texel.
-        """
+        solid-angle pdf (B, ...)). Not differentiable (the tables are detached). See
+        :func:`dibrpp.envmap_sampling.sample_directions`."""
         u, lead = self._flatten(uniforms, 2, "uniforms")
         beff, m = u.shape[:2]
-        t = self._sampling_tables()
-        h, w = self.height, self.width
+        t = self.sampling_tables()
         u = (u.reshape(1, beff * m, 2) if t.cdf.shape[0] == 1 else u).to(torch.float64)
-        u0, u1 = u[..., 0].contiguous(), u[..., 1].contiguous()
-        row = (torch.searchsorted(t.row_cdf, u0, right=True) - 1).clamp(0, h - 1)
-        row_lo = t.row_cdf.gather(1, row)
-        row_p = t.row_cdf.gather(1, row + 1) - row_lo
-        target = row_lo + u1 * row_p  # the column search runs inside the row's span of the flat cdf
-        idx = torch.searchsorted(t.cdf, target, right=True) - 1
-        idx = torch.minimum(torch.maximum(idx, row * w), row * w + (w - 1))
-        lo = t.cdf.gather(1, idx)
-        frac_col = ((target - lo) / (t.cdf.gather(1, idx + 1) - lo)).clamp(0, 1)
-        frac_row = ((u0 - row_lo) / row_p).clamp(0, 1)
-        cos_theta = t.cos_edges[row] + frac_row * (t.cos_edges[row + 1] - t.cos_edges[row])  # uniform in solid angle
-        uv = torch.stack([(idx - row * w + frac_col) / w, torch.acos(cos_theta.clamp(-1, 1)) / math.pi], -1)
-        dirs = conv.equirect_uv_to_direction(uv).reshape(beff, m, 3).to(uniforms.dtype)
-        pdf = t.pdf.gather(1, idx).reshape(beff, m).to(uniforms.dtype)
+        dirs, pdf = sample_directions(t, u)
+        dirs = dirs.reshape(beff, m, 3).to(uniforms.dtype)
+        pdf = pdf.reshape(beff, m).to(uniforms.dtype)
         return self._to_world(dirs).reshape(lead + (3,)), pdf.reshape(lead)
 
     def pdf(self, dirs: torch.Tensor) -> torch.Tensor:
         """Solid-angle pdf (B, ...) of :meth:`sample` at world directions (B, ..., 3); never 0."""
-        t = self._sampling_tables()
-        h, w = self.height, self.width
-
-        def texel_pdf(d):
-            uv = conv.direction_to_equirect_uv(d)
-            col = (uv[..., 0] * w).long().clamp(0, w - 1)
-            row = (uv[..., 1] * h).long().clamp(0, h - 1)
-            return t.pdf.reshape(-1)[self._flat_base(d.shape[0], d.device) + row * w + col].to(d.dtype)
-
+        t = self.sampling_tables()
         with torch.no_grad():
-            return self._apply(texel_pdf, dirs)
+            return self._apply(lambda d: texel_pdf(t, d, self._flat_base(d.shape[0], d.device)), dirs)
+
+
+def _same_data(a: torch.Tensor, b: torch.Tensor) -> bool:
+    return (a.data_ptr() == b.data_ptr() and a.shape == b.shape and a.stride() == b.stride()
+            and a.dtype == b.dtype and a.device == b.device)
 
 
 # ----------------------------------------------------------------------------- SG and SH lights
 
-class SGLight(_Light):
+class SGLight(Light):
     """Mixture of K spherical Gaussians: axis (B, K, 3) (normalised here), sharpness (B, K) > 0,
     amplitude (B, K, 3) RGB radiance at the lobe centre. Differentiable w.r.t. all three."""
 
-    _tensors = ("axis", "sharpness", "amplitude")
+    _fields = ("axis", "sharpness", "amplitude")
 
     def __init__(self, axis: torch.Tensor, sharpness: torch.Tensor, amplitude: torch.Tensor, world_to_light=None):
         _check_shape("SG axis", axis, (None, None, 3))
@@ -357,10 +340,10 @@ class SGLight(_Light):
         return sg_integral(self.sharpness, self.amplitude).sum(-2)
 
 
-class SHLight(_Light):
+class SHLight(Light):
     """Order-2 real SH radiance, coeffs (B, 9, 3) (ordering in :mod:`dibrpp.sh`)."""
 
-    _tensors = ("coeffs",)
+    _fields = ("coeffs",)
 
     def __init__(self, coeffs: torch.Tensor, world_to_light=None):
         _check_shape("SH coefficients", coeffs, (None, SH_COUNT, 3))
@@ -379,151 +362,25 @@ class SHLight(_Light):
 
 # ----------------------------------------------------------------------------- conversions
 
-def _texel_grid(height: int, width: int, like: torch.Tensor):
-    """Texel-centre directions (H*W, 3) and exact solid angles (H*W,) of an equirect grid."""
-    dirs = conv.equirect_directions(height, width, device=like.device, dtype=like.dtype)
-    omega = conv.equirect_solid_angles(height, width, device=like.device, dtype=like.dtype).expand(height, width)
-    return dirs.reshape(-1, 3), omega.reshape(-1)
-
-
 def project_envmap_to_sh(env: EnvMap) -> SHLight:
     """Order-2 SH projection c_lm = sum_texels L Y_lm dw (exact texel solid angles), in the map's frame.
 
     Differentiable w.r.t. the map."""
-    dirs, omega = _texel_grid(env.height, env.width, env.image)
-    basis = sh_basis(dirs) * omega.unsqueeze(-1)  # (N, 9)
-    coeffs = torch.einsum("nk,bnc->bkc", basis, env.image.reshape(env.image.shape[0], -1, 3))
-    return SHLight(coeffs, env.world_to_light)
-
-
-def _area_downsample(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Solid-angle-weighted area average of (B, H, W, 3) down to at most (height, width)."""
-    b, h, w, _ = image.shape
-    height, width = min(height, h), min(width, w)
-    if (height, width) == (h, w):
-        return image
-    omega = conv.equirect_solid_angles(h, w, device=image.device, dtype=image.dtype).expand(h, w)[None, None]
-    num = F.adaptive_avg_pool2d(image.permute(0, 3, 1, 2) * omega, (height, width))
-    return (num / F.adaptive_avg_pool2d(omega, (height, width))).permute(0, 2, 3, 1)
-
-
-def _fibonacci_sphere(n: int, rotation: torch.Tensor) -> torch.Tensor:
-    i = torch.arange(n, dtype=torch.float64) + 0.5
-    z = 1 - 2 * i / n
-    phi = i * math.pi * (3 - math.sqrt(5))  # golden angle
-    r = torch.sqrt(1 - z * z)
-    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1) @ rotation.T
-
-
-def _random_rotation(seed: int) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    q, r = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
-    q = q * torch.sign(torch.diagonal(r))
-    return q if torch.linalg.det(q) > 0 else -q
-
-
-def _initial_axes(dirs: torch.Tensor, target: torch.Tensor, num_lobes: int, sharpness: float, seed: int) -> torch.Tensor:
-    """(B, K, 3): matching pursuit puts half of the lobes (rounded up) on the brightest texel of what
-    the previous lobes leave unexplained (bright features such as a sun are found at once); the rest
-    cover the sphere evenly (a Fibonacci set, randomly rotated by ``seed``) for the background."""
-    b = target.shape[0]
-    n_spread = num_lobes // 2
-    luma = target.new_tensor(LUMINANCE_WEIGHTS)
-    # Once nothing positive is left (a broad lobe on a sun over-subtracts the whole map), the pick would
-    # repeat, and identical lobes get identical gradients and never separate: take spread axes instead.
-    fallback = _fibonacci_sphere(num_lobes - n_spread, _random_rotation(seed + 1)).to(target)
-    residual, axes = target, []
-    for i in range(num_lobes - n_spread):
-        score = residual @ luma
-        pick = score.argmax(-1)  # (B,)
-        exhausted = (score.gather(1, pick.view(b, 1)) <= 0).view(b, 1, 1)
-        axis = torch.where(exhausted, fallback[i].view(1, 1, 3), dirs[pick].unsqueeze(1))  # (B, 1, 3)
-        amp = residual.gather(1, pick.view(b, 1, 1).expand(b, 1, 3)).clamp_min(0) * ~exhausted
-        residual = residual - amp * sg_lobe_values(dirs, axis.unsqueeze(1), sharpness)
-        axes.append(axis)
-    spread = _fibonacci_sphere(n_spread, _random_rotation(seed)).to(target).expand(b, n_spread, 3)
-    return torch.cat(axes + [spread], 1)
-
-
-def _nonnegative_least_squares(basis: torch.Tensor, weight: torch.Tensor, target: torch.Tensor,
-                               amp: torch.Tensor | None = None, iters: int = 200) -> torch.Tensor:
-    """argmin_{a >= 0} sum w (G a - L)^2 for a non-negative basis G (B, N, K), targets L (B, N, C),
-    by multiplicative updates (Lee & Seung): they keep a >= 0 and never increase the error.
-    ``amp`` warm-starts; it is floored slightly above 0 so that a lobe switched off can come back."""
-    gram = basis.mT @ (basis * weight)  # (B, K, K)
-    rhs = (basis.mT @ (target * weight)).clamp_min(0)  # (B, K, C); negative radiance cannot be met
-    if amp is None:
-        amp = torch.ones_like(rhs) * (rhs.sum(1, keepdim=True) / gram.sum((1, 2)).view(-1, 1, 1).clamp_min(1e-30))
-    amp = torch.maximum(amp, 1e-6 * amp.amax((1, 2), keepdim=True).clamp_min(1e-30))
-    for _ in range(iters):
-        amp = amp * rhs / (gram @ amp).clamp_min(1e-30)
-    return amp
-
-
-@contextlib.contextmanager
-def _single_cpu_thread(device: torch.device):
-    """The SG fit is a loop of small tensor ops: on CPU, intra-op threads only add synchronisation
-    (measured 30x slower with 2 threads on a busy 2-core machine), so run it on one."""
-    threads = torch.get_num_threads()
-    if device.type == "cpu":
-        torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
+    return SHLight(sh_projection(env.image), env.world_to_light)
 
 
 def fit_sg_to_envmap(env: EnvMap, num_lobes: int, iters: int = 300, lr: float = 0.05, seed: int = 0,
                      resolution: tuple[int, int] = (64, 128)) -> SGLight:
     """Fit ``num_lobes`` SG lobes per map to an env map, in the map's frame (same ``world_to_light``).
 
-    Minimises the solid-angle-weighted relative L2 error sum w (G - L)^2 / sum w L^2 on the map
-    area-averaged down to at most ``resolution``. Initial axes: :func:`_initial_axes`; initial
-    sharpness from the lobe count. Adam (``lr``, cosine-decayed over ``iters`` steps) moves axes and
-    log-sharpness (so > 0, capped so that a lobe is no narrower than a texel); at every step the
-    amplitudes are the non-negative least-squares optimum for the current lobes (variable
-    projection: amplitude is the easy, convex part of the problem). Deterministic for a seed; not
-    differentiable w.r.t. the map. The result's ``fit_rel_error`` (B,) is the square root of the
-    final error on the fitting grid.
+    Minimises the solid-angle-weighted relative L2 error of the lobes on the map area-averaged down to at
+    most ``resolution`` (:func:`dibrpp.envmap_fit.fit_sg_lobes`: matching-pursuit initial axes, Adam on axes
+    and log-sharpness, non-negative least-squares amplitudes). Deterministic for a seed; not
+    differentiable w.r.t. the map. The result's ``fit_rel_error`` (B,) is the square root of the final
+    error on the fitting grid.
     """
-    if num_lobes < 1 or iters < 0:
-        raise ValueError(f"need num_lobes >= 1 and iters >= 0, got {num_lobes}, {iters}")
-    target = _area_downsample(env.image.detach(), *resolution)
-    b, h, w, _ = target.shape
-    dirs, omega = _texel_grid(h, w, target)
-    target = target.reshape(b, -1, 3)
-    weight = (omega / omega.sum()).view(1, -1, 1)
-    norm = (weight * target.square()).sum((1, 2)).clamp_min(1e-30)
-
-    max_lam = (h / math.pi) ** 2  # lobe std 1/sqrt(lam) >= one texel
-    lam0 = min(max(num_lobes / 3.0, 1.0), max_lam)
-    axis = _initial_axes(dirs, target, num_lobes, lam0, seed).clone().requires_grad_(True)
-    log_lam = torch.full((b, num_lobes), math.log(lam0), dtype=target.dtype, device=target.device, requires_grad=True)
-    dirs = dirs.unsqueeze(0)  # (1, N, 3)
-
-    def lobes():  # (B, N, K)
-        return sg_lobe_values(dirs, F.normalize(axis, dim=-1).unsqueeze(1), log_lam.exp().unsqueeze(1))
-
-    def rel_sq_error(basis, amp):
-        return (weight * (basis @ amp - target).square()).sum((1, 2)) / norm
-
-    amp = None
-    with torch.enable_grad(), _single_cpu_thread(target.device):
-        opt = torch.optim.Adam([axis, log_lam], lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(iters, 1))
-        for _ in range(iters):
-            opt.zero_grad(set_to_none=True)
-            basis = lobes()
-            with torch.no_grad():
-                amp = _nonnegative_least_squares(basis, weight, target, amp, iters=200 if amp is None else 10)
-            rel_sq_error(basis, amp).sum().backward()
-            opt.step()
-            sched.step()
-            with torch.no_grad():
-                log_lam.clamp_(max=math.log(max_lam))
+    axis, sharpness, amplitude, rel_error = fit_sg_lobes(env.image, num_lobes, iters, lr, seed, resolution)
     with torch.no_grad():
-        basis = lobes()
-        amp = _nonnegative_least_squares(basis, weight, target, amp, iters=200 if amp is None else 50)
-        light = SGLight(F.normalize(axis.detach(), dim=-1), log_lam.detach().exp(), amp, env.world_to_light)
-        light.fit_rel_error = rel_sq_error(basis, amp).sqrt()
+        light = SGLight(axis, sharpness, amplitude, env.world_to_light)
+    light.fit_rel_error = rel_error
     return light

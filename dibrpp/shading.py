@@ -11,7 +11,6 @@
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -22,7 +21,7 @@ from . import native
 from . import sg as sgmath
 from .brdf import ShadingPoint, geometry_term
 from .jit import CompiledOrEager
-from .lights import EnvMap, _Light
+from .lights import EnvMap, Light
 
 
 @dataclass
@@ -150,14 +149,14 @@ class _MCPlan:
                 self.gen = torch.Generator(device=self.device)
                 self.gen.manual_seed(int(torch.randint(0, 2 ** 62, (1,), device=self.device)))
         self.states: list[torch.Tensor] = []  # generator state at the start of each chunk (filled by estimate)
-        # lights are rebuilt around the function's inputs: a shallow copy with its tensors replaced. The env-map
-        # sampling tables (from the detached image) are built once here and shared by every copy.
+        # lights are rebuilt around the function's inputs (Light.with_tensors). The env-map sampling tables
+        # (from the detached image) are built once here and shared by every copy.
         self.light_fields: tuple[str, ...] = ()
-        self.replayable = isinstance(light, _Light) and self.n_pix > 0
+        self.replayable = isinstance(light, Light) and self.n_pix > 0
         if self.replayable:
-            self.light_fields = tuple(n for n in light._tensors + ("world_to_light",) if getattr(light, n) is not None)
-            if self.mis and hasattr(light, "_sampling_tables"):
-                light._sampling_tables()
+            self.light_fields = tuple(light.tensors())
+            if self.mis and hasattr(light, "sampling_tables"):
+                light.sampling_tables()
         self.kernel = self._native_kernel(shader.replay) if shader.native else None
 
     def _native_kernel(self, replay: bool):
@@ -183,7 +182,7 @@ class _MCPlan:
         rot = light.image.new_zeros(0) if rot is None else rot.detach().contiguous()
         tables = []
         if self.mis:
-            t = light._sampling_tables()
+            t = light.sampling_tables()
             tables = [t.cdf, t.row_cdf, t.pdf, t.cos_edges.contiguous()]
         return kernel_fn(points, self.g.batch.contiguous(), light.image.detach().contiguous(), rot, tables,
                          u.contiguous(), 0 if kind == "brdf" else 1, p.geometry == "smith", self.mis,
@@ -198,10 +197,7 @@ class _MCPlan:
         point = dataclasses.replace(self.point, **dict(zip(_POINT_FIELDS, inputs[:k])))
         if not self.light_fields:
             return point, self.light
-        light = copy.copy(self.light)
-        for name, t in zip(self.light_fields, inputs[k:]):
-            setattr(light, name, t)
-        return point, light
+        return point, self.light.with_tensors(**dict(zip(self.light_fields, inputs[k:])))
 
     def draw(self, i: int, gen: torch.Generator) -> torch.Tensor:
         kind, s = self.chunks[i]

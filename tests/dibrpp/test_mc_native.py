@@ -84,7 +84,7 @@ def test_kernel_env_gradient_agrees_with_finite_differences():
     # a texel the samples reach; the MIS weights use the detached map, which the difference below also moves,
     # so the estimate is evaluated with its sampling tables held at the unperturbed map
     index = tuple(int(i) for i in (img.grad.abs() == img.grad.abs().max()).nonzero()[0])
-    tables = EnvMap(image)._sampling_tables()
+    tables = EnvMap(image).sampling_tables()
 
     def loss():
         light = EnvMap(image)
