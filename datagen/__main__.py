@@ -6,7 +6,7 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .generate import DATASETS, PRESETS
+    from .config import DATASETS, PRESETS
 
     p = argparse.ArgumentParser(prog="python -m datagen", description=(
         "Generate a procedural DIB-R++ dataset (metallic / glossy cars, diffuse heads) with Blender Cycles. "
@@ -46,7 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     from dibrpp.io import DataError
 
-    from .generate import generate, make_config, parse_shard
+    from .config import make_config, parse_shard
+    from .generate import generate
 
     args = build_parser().parse_args(argv)
     try:

@@ -12,7 +12,7 @@ import torch
 
 from dibrpp import conventions as conv
 
-from . import cycles as C
+from . import cycles
 from .textures import Noise3
 
 # A panoramic camera with this rotation maps directions exactly like the Environment Texture node
@@ -26,9 +26,9 @@ def capture_world(height: int, width: int, spp: int, seed: int, max_bounces: int
     import bpy
 
     sc = bpy.context.scene
-    C.configure_render(sc, C.RenderSettings(resolution=height, width=width, spp=spp, seed=seed,
-                                            max_bounces=max_bounces, filter_width=1.0, film_transparent=False,
-                                            denoise=denoise, threads=threads))
+    settings = cycles.RenderSettings(resolution=height, width=width, spp=spp, seed=seed, max_bounces=max_bounces,
+                                     filter_width=1.0, film_transparent=False, denoise=denoise, threads=threads)
+    cycles.configure_render(sc, settings)
     cam = bpy.data.cameras.new("pano")
     cam.type = "PANO"
     cam.panorama_type = "EQUIRECTANGULAR"
@@ -38,7 +38,7 @@ def capture_world(height: int, width: int, spp: int, seed: int, max_bounces: int
     obj.rotation_euler = PANO_ROTATION
     sc.collection.objects.link(obj)
     sc.camera = obj
-    return np.ascontiguousarray(C.render_still(sc, "envmap")[..., :3])
+    return np.ascontiguousarray(cycles.render_still(sc, "envmap")[..., :3])
 
 
 def _directions(h, w):
@@ -49,7 +49,7 @@ def outdoor(rng: np.random.Generator, height: int = 64, width: int = 128, spp: i
     """A sky: Blender's MULTIPLE_SCATTERING sky with a random sun, plus clouds and a textured ground."""
     import bpy
 
-    C.reset()
+    cycles.reset()
     world = bpy.data.worlds.new("sky")
     bpy.context.scene.world = world
     nt = world.node_tree
@@ -109,7 +109,7 @@ def indoor(rng: np.random.Generator, height: int = 64, width: int = 128, spp: in
     """A room: coloured walls lit by emissive windows (sky light) and lamps, path traced (3 bounces)."""
     import bpy
 
-    C.reset()
+    cycles.reset()
     sc = bpy.context.scene
     world = bpy.data.worlds.new("dark")
     world.color = (0.0, 0.0, 0.0)

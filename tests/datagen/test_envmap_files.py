@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from datagen import envmap_files as EF
+from datagen import envmap_files
 from dibrpp import conventions as conv
 from dibrpp.io import DataError, read_exr, write_exr
 
@@ -45,8 +45,8 @@ def test_hdr_round_trip_flat_and_run_length(tmp_path, rle):
     img = smooth_map(8)  # width 16: run-length encoded when asked
     img[0] = 3.0  # a constant row: runs
     img[1, :5] = 0.0
-    EF.write_hdr(tmp_path / "m.hdr", img, rle=rle)
-    back = EF.read_hdr(tmp_path / "m.hdr")
+    envmap_files.write_hdr(tmp_path / "m.hdr", img, rle=rle)
+    back = envmap_files.read_hdr(tmp_path / "m.hdr")
     assert back.shape == img.shape and back.dtype == np.float32
     # RGBE keeps 8 bits of mantissa per pixel, relative to the pixel's largest channel
     assert (np.abs(back - img) / img.max(-1, keepdims=True).clip(1e-6)).max() < 1 / 128
@@ -56,23 +56,23 @@ def test_hdr_round_trip_flat_and_run_length(tmp_path, rle):
 def test_hdr_reader_agrees_with_blender(tmp_path):
     bpy = pytest.importorskip("bpy")
     img = smooth_map(8, seed=3)
-    EF.write_hdr(tmp_path / "m.hdr", img)
+    envmap_files.write_hdr(tmp_path / "m.hdr", img)
     im = bpy.data.images.load(str(tmp_path / "m.hdr"))
     px = np.array(im.pixels[:], np.float32).reshape(im.size[1], im.size[0], 4)[::-1, :, :3]  # bpy: bottom row first
     bpy.data.images.remove(im)
-    np.testing.assert_array_equal(EF.read_hdr(tmp_path / "m.hdr"), px)
+    np.testing.assert_array_equal(envmap_files.read_hdr(tmp_path / "m.hdr"), px)
 
 
 def test_hdr_orientation_flags(tmp_path):
     img = smooth_map(4)
-    EF.write_hdr(tmp_path / "m.hdr", img)
+    envmap_files.write_hdr(tmp_path / "m.hdr", img)
     data = (tmp_path / "m.hdr").read_bytes()
-    ref = EF.read_hdr(tmp_path / "m.hdr")
+    ref = envmap_files.read_hdr(tmp_path / "m.hdr")
     (tmp_path / "up.hdr").write_bytes(data.replace(b"-Y 4 +X 8", b"+Y 4 +X 8"))  # bottom row first
-    np.testing.assert_array_equal(EF.read_hdr(tmp_path / "up.hdr"), ref[::-1])
+    np.testing.assert_array_equal(envmap_files.read_hdr(tmp_path / "up.hdr"), ref[::-1])
     (tmp_path / "t.hdr").write_bytes(data.replace(b"-Y 4 +X 8", b"+X 8 -Y 4"))  # transposed: refused
     with pytest.raises(ValueError, match="resolution line"):
-        EF.read_hdr(tmp_path / "t.hdr")
+        envmap_files.read_hdr(tmp_path / "t.hdr")
 
 
 # ----------------------------------------------------------------------------- resampling
@@ -80,7 +80,7 @@ def test_hdr_orientation_flags(tmp_path):
 @pytest.mark.parametrize("src,dst", [(32, 8), (24, 8), (8, 8), (6, 16)])
 def test_resampling_preserves_energy_and_orientation(src, dst):
     env = smooth_map(src)
-    out = EF.resample_equirect(env, dst)
+    out = envmap_files.resample_equirect(env, dst)
     assert out.shape == (dst, 2 * dst, 3) and out.dtype == np.float32
     np.testing.assert_allclose(exact_energy(out), exact_energy(env), rtol=1e-5)
     if src == dst:
@@ -95,7 +95,7 @@ def test_resampling_preserves_energy_and_orientation(src, dst):
         expected = (blocks * wrow[:, :, None, None, None]).sum((1, 3)) / (k * wrow.sum(1))[:, None, None]
         np.testing.assert_allclose(out, expected, rtol=1e-5)
     # a constant map stays constant
-    np.testing.assert_allclose(EF.resample_equirect(np.full((src, 2 * src, 3), 0.7, np.float32), dst), 0.7, rtol=1e-6)
+    np.testing.assert_allclose(envmap_files.resample_equirect(np.full((src, 2 * src, 3), 0.7, np.float32), dst), 0.7, rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- bad maps
@@ -121,7 +121,7 @@ def _bad_maps(tmp_path):
     cases["unreadable"] = (d, "broken.exr", "cannot read")
     d = tmp_path / "truncated_hdr"
     d.mkdir()
-    EF.write_hdr(d / "cut.hdr", good)
+    envmap_files.write_hdr(d / "cut.hdr", good)
     (d / "cut.hdr").write_bytes((d / "cut.hdr").read_bytes()[:-20])
     cases["truncated_hdr"] = (d, "cut.hdr", "cannot read")
     d = tmp_path / "empty"
@@ -132,12 +132,13 @@ def _bad_maps(tmp_path):
 
 
 def test_each_kind_of_bad_map_is_named_with_what_to_do(tmp_path):
-    from datagen import generate as G
+    from datagen.config import make_config
+    from datagen.generate import generate
 
     for kind, (folder, name, match) in _bad_maps(tmp_path).items():
         with pytest.raises(DataError, match=match) as e:
-            cfg = G.make_config("glossy", envmaps=folder, num_objects=1, envs_per_object=1, views=1)
-            G.generate(cfg, tmp_path / f"out_{kind}", workers=1, progress=False)
+            cfg = make_config("glossy", envmaps=folder, num_objects=1, envs_per_object=1, views=1)
+            generate(cfg, tmp_path / f"out_{kind}", workers=1, progress=False)
         msg = str(e.value)
         assert str(folder / name) in msg and "\n" not in msg, (kind, msg)
         assert any(w in msg for w in ("remove", "put", "convert", "clamp", "repair")), msg
@@ -162,24 +163,25 @@ def test_cli_exit_status_2_and_one_line_error(tmp_path):
 # ----------------------------------------------------------------------------- the plan
 
 def test_files_come_first_sorted_and_each_kind_is_split_4_to_1(tmp_path):
-    from datagen import generate as G
+    from datagen.config import config_dict, make_config
+    from datagen.plan import plan
 
     for i in range(10):
         (tmp_path / f"map_{9 - i:02d}.{'exr' if i % 2 else 'hdr'}").write_bytes(b"")  # only listed, not read
     (tmp_path / "notes.txt").write_text("ignored")
-    assert [p.name for p in EF.list_envmap_files(tmp_path)] == [f"map_{i:02d}.{'hdr' if i % 2 else 'exr'}"
+    assert [p.name for p in envmap_files.list_envmap_files(tmp_path)] == [f"map_{i:02d}.{'hdr' if i % 2 else 'exr'}"
                                                                 for i in range(10)]
-    cfg = G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=5, num_objects=20)
+    cfg = make_config("glossy", envmaps=tmp_path, procedural_envmaps=5, num_objects=20)
     assert cfg.num_envmaps == 15 and cfg.num_file_envmaps == 10
-    p = G.plan(cfg)
+    p = plan(cfg)
     assert p["env_kind"][:10] == ["file"] * 10 and set(p["env_kind"][10:]) <= {"outdoor", "indoor"}
     test = p["splits"]["envmaps"]["test"]
     assert len([e for e in test if e < 10]) == 2 and len([e for e in test if e >= 10]) == 1
     assert p["splits"]["test_objects_see_only_test_envmaps"] is True
-    assert G.plan(cfg) == p  # deterministic; another seed splits differently
-    assert G.plan(G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=5, num_objects=20, seed=1)) != p
+    assert plan(cfg) == p  # deterministic; another seed splits differently
+    assert plan(make_config("glossy", envmaps=tmp_path, procedural_envmaps=5, num_objects=20, seed=1)) != p
     # The procedural-only config is unchanged by the new options (old manifests keep matching).
-    assert set(G.config_dict(G.make_config("glossy"))) == {
+    assert set(config_dict(make_config("glossy"))) == {
         "dataset", "num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "seed",
         "texture_size", "envmap_height", "grid", "max_bounces", "preset"}
 
@@ -190,30 +192,31 @@ def test_files_come_first_sorted_and_each_kind_is_split_4_to_1(tmp_path):
 def test_tiny_dataset_from_a_folder_of_one_exr_and_one_hdr(tmp_path):
     pytest.importorskip("bpy")
     pytest.importorskip("xatlas")
-    from datagen import generate as G
+    from datagen.config import make_config
+    from datagen.generate import generate
     from datagen.layout import DatasetLayout
 
     folder = tmp_path / "hdris"
     folder.mkdir()
     exr_map, hdr_map = smooth_map(8, seed=1), smooth_map(12, seed=2) * 0.5
     write_exr(folder / "b_studio.exr", exr_map)
-    EF.write_hdr(folder / "a_sky.hdr", hdr_map)
-    hdr_read = EF.read_hdr(folder / "a_sky.hdr")
-    cfg = G.make_config("glossy", envmaps=folder, procedural_envmaps=1, num_objects=1, envs_per_object=3, views=1,
+    envmap_files.write_hdr(folder / "a_sky.hdr", hdr_map)
+    hdr_read = envmap_files.read_hdr(folder / "a_sky.hdr")
+    cfg = make_config("glossy", envmaps=folder, procedural_envmaps=1, num_objects=1, envs_per_object=3, views=1,
                         resolution=16, spp=2, texture_size=32, envmap_height=4, grid=32, max_bounces=1)
     out = tmp_path / "ds"
-    stats = G.generate(cfg, out, workers=1, progress=False, preview=False)
+    stats = generate(cfg, out, workers=1, progress=False, preview=False)
     assert stats["rendered_views"] == 3
     lay = DatasetLayout(out)
     m = json.loads(lay.manifest.read_text())
     assert m["env_kind"][:2] == ["file", "file"] and m["env_kind"][2] in ("outdoor", "indoor")
     assert [s["file"] for s in m["envmap_sources"]] == ["a_sky.hdr", "b_studio.exr"]  # sorted by name
     assert [(s["height"], s["width"]) for s in m["envmap_sources"]] == [(12, 24), (8, 16)]
-    assert m["envmap_sources"][0]["sha256"] == EF.sha256_of(folder / "a_sky.hdr")
+    assert m["envmap_sources"][0]["sha256"] == envmap_files.sha256_of(folder / "a_sky.hdr")
     assert m["config"]["envmaps_dir"] == str(folder) and m["config"]["procedural_envmaps"] == 1
     for i, src in enumerate((hdr_read, exr_map)):
         env = read_exr(lay.envmap(i), "RGB")
-        np.testing.assert_allclose(env, EF.resample_equirect(src, 4), rtol=1e-6)
+        np.testing.assert_allclose(env, envmap_files.resample_equirect(src, 4), rtol=1e-6)
         np.testing.assert_allclose(exact_energy(env), exact_energy(src), rtol=1e-4)
         rec = json.loads(lay.envmap_json(i).read_text())
         assert rec["kind"] == "file" and rec["source"]["file"] == m["envmap_sources"][i]["file"]
@@ -228,27 +231,27 @@ def test_tiny_dataset_from_a_folder_of_one_exr_and_one_hdr(tmp_path):
     # a resumed run refuses a folder whose files changed, before rendering
     write_exr(folder / "b_studio.exr", exr_map * 2)
     with pytest.raises(DataError, match="other env map files"):
-        G.generate(cfg, out, workers=1, progress=False)
+        generate(cfg, out, workers=1, progress=False)
 
 
 def test_too_few_maps_and_bad_counts_say_what_to_do(tmp_path):
-    from datagen import generate as G
+    from datagen.config import make_config
 
     write_exr(tmp_path / "only.exr", smooth_map(4))
     with pytest.raises(ValueError, match="1 in .* 0 procedural.*--procedural-envmaps"):
-        G.make_config("glossy", envmaps=tmp_path, envs_per_object=2)
-    assert G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=1, envs_per_object=2).num_envmaps == 2
+        make_config("glossy", envmaps=tmp_path, envs_per_object=2)
+    assert make_config("glossy", envmaps=tmp_path, procedural_envmaps=1, envs_per_object=2).num_envmaps == 2
     with pytest.raises(ValueError, match="--procedural-envmaps must be >= 0"):
-        G.make_config("glossy", envmaps=tmp_path, procedural_envmaps=-1)
+        make_config("glossy", envmaps=tmp_path, procedural_envmaps=-1)
 
 
 def test_compression_noise_below_zero_is_accepted_and_becomes_zero(tmp_path):
     """Lossy EXRs (DWA, as Blender's bundled maps) hold values a hair below 0; a real negative is refused."""
     img = smooth_map(4)
     img[1, 2, 0] = -0.01 * img.mean()
-    EF.check_envmap("noisy.exr", img)
-    assert EF.resample_equirect(img, 2).min() >= 0
+    envmap_files.check_envmap("noisy.exr", img)
+    assert envmap_files.resample_equirect(img, 2).min() >= 0
     img[1, 2, 0] = -0.5 * img.mean()
-    with pytest.raises(EF.EnvmapError, match="negative"):
-        EF.check_envmap("broken.exr", img)
+    with pytest.raises(envmap_files.EnvmapError, match="negative"):
+        envmap_files.check_envmap("broken.exr", img)
 

@@ -15,7 +15,11 @@ import torch
 pytest.importorskip("bpy")
 pytest.importorskip("xatlas")
 
-from datagen import generate as G  # noqa: E402
+from datagen.config import config_dict, make_config, parse_shard  # noqa: E402
+from datagen.generate import generate  # noqa: E402
+from datagen.layout import DEFAULT_CAMERA, DatasetLayout  # noqa: E402
+from datagen.manifest import GENERATOR_VERSION  # noqa: E402
+from datagen.plan import azimuths, plan  # noqa: E402
 from dibrpp.io import DataError, read_exr, read_png  # noqa: E402
 
 pytestmark = pytest.mark.cycles
@@ -25,13 +29,13 @@ TINY = dict(num_objects=2, num_envmaps=2, envs_per_object=1, views=3, resolution
 
 
 def tiny_config(dataset="metallic", **kw):
-    return G.make_config(dataset, **{**TINY, **kw})
+    return make_config(dataset, **{**TINY, **kw})
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("ds") / "metallic"
-    stats = G.generate(tiny_config(), out, workers=1, progress=False)
+    stats = generate(tiny_config(), out, workers=1, progress=False)
     return out, stats
 
 
@@ -57,13 +61,13 @@ def _json_without_timing(root: Path) -> dict:
 def test_layout_manifest_and_splits(dataset):
     out, stats = dataset
     m = json.loads((out / "manifest.json").read_text())
-    assert m["generator_version"] == G.GENERATOR_VERSION
+    assert m["generator_version"] == GENERATOR_VERSION
     assert m["counts"]["objects"] == 2 and m["counts"]["images"] == 2 * 1 * 3
     assert sorted(m["splits"]["objects"]["train"] + m["splits"]["objects"]["test"]) == [0, 1]
     assert len(m["splits"]["objects"]["test"]) == 0 or len(m["splits"]["objects"]["test"]) == 1
     for o in m["objects"]:
         assert o["material"] == dict(roughness=0.0, metallic=1.0, specular_ior_level=0.5, subsurface_weight=0.0)
-        d = out / "samples" / G.sample_name(o["index"], o["envmaps"][0])
+        d = out / "samples" / DatasetLayout.sample_name(o["index"], o["envmaps"][0])
         assert (d / "sample.json").exists()
         for v in range(3):
             rgba = read_exr(d / f"view_{v:02d}.exr", "RGBA")
@@ -76,7 +80,7 @@ def test_layout_manifest_and_splits(dataset):
 
 def test_every_file_written_is_a_path_of_the_layout(dataset):
     """The writer and the reader share datagen.layout: every file on disk is one the layout names."""
-    from datagen.layout import CameraSetup, DatasetLayout
+    from datagen.layout import CameraSetup
 
     out, _ = dataset
     lay = DatasetLayout(out)
@@ -94,8 +98,8 @@ def test_every_file_written_is_a_path_of_the_layout(dataset):
                           lay.view_albedo(i, e, v), lay.view_camera(i, e, v)}
     assert {p for p in out.rglob("*") if p.is_file()} == named
     cam = CameraSetup.from_manifest(m)
-    assert (cam.distance, cam.elevation_deg, cam.fov) == (G.CAMERA_DISTANCE, G.CAMERA_ELEVATION_DEG, G.FOV)
-    assert list(cam.azimuths_deg) == G.azimuths(tiny_config()) and cam.resolution == 48
+    assert (cam.distance, cam.elevation_deg, cam.fov) == (DEFAULT_CAMERA.distance, DEFAULT_CAMERA.elevation_deg, DEFAULT_CAMERA.fov)
+    assert list(cam.azimuths_deg) == azimuths(tiny_config()) and cam.resolution == 48
     view = json.loads(lay.view_camera(*lay.finished_samples()[0], 1).read_text())
     assert view["distance"] == cam.distance and view["fov"] == cam.fov and view["azimuth_deg"] == cam.azimuths_deg[1]
 
@@ -152,7 +156,7 @@ def test_panorama_capture_follows_envmap_convention():
     """The camera that captures skies/rooms reproduces a direction-coded world exactly."""
     import bpy
 
-    from datagen import cycles as C
+    from datagen import cycles
     from datagen import envmaps
     from dibrpp import conventions as conv
 
@@ -160,8 +164,8 @@ def test_panorama_capture_follows_envmap_convention():
     d = conv.equirect_directions(h, w, dtype=torch.float64)
     env = (torch.stack([d[..., 1].clamp_min(0), d[..., 2].clamp_min(0), d[..., 0].clamp_min(0)], -1) + 0.05)
     env = env.float().numpy()
-    C.reset()
-    C.make_world(env)
+    cycles.reset()
+    cycles.make_world(env)
     got = envmaps.capture_world(h, w, spp=4, seed=0)
     assert bpy.context.scene.camera.data.type == "PANO"
     assert np.abs(got - env).mean() < 0.01
@@ -183,13 +187,13 @@ def test_resume_after_crash_gives_identical_files(dataset, tmp_path):
     (out / "objects" / "obj_0001" / "object.json").unlink()
     (out / "objects" / "obj_0001" / "texture.png").unlink()
     (out / "preview.png").unlink()
-    stats = G.generate(tiny_config(), out, workers=1, progress=False)
+    stats = generate(tiny_config(), out, workers=1, progress=False)
     assert stats["rendered_views"] == 1 + 3 and stats["skipped_samples"] == 0
     (samples[0] / ".view_02.exr.tmp123.exr").unlink()
     assert _binary_files(out) == _binary_files(ref)
     assert _json_without_timing(out) == _json_without_timing(ref)
     # A rerun of a finished dataset renders nothing.
-    again = G.generate(tiny_config(), out, workers=1, progress=False, preview=False)
+    again = generate(tiny_config(), out, workers=1, progress=False, preview=False)
     assert again["rendered_views"] == 0 and again["skipped_samples"] == 2
 
 
@@ -200,26 +204,26 @@ def test_corrupt_sample_and_changed_settings_are_clear_errors(dataset, tmp_path)
     victim = sorted((out / "samples").iterdir())[0] / "view_00.exr"
     victim.write_bytes(victim.read_bytes()[:100])
     with pytest.raises(DataError, match="corrupt"):
-        G.generate(tiny_config(), out, workers=1, progress=False)
+        generate(tiny_config(), out, workers=1, progress=False)
     with pytest.raises(DataError, match="different settings"):
-        G.generate(tiny_config(spp=8), ref, workers=1, progress=False)
+        generate(tiny_config(spp=8), ref, workers=1, progress=False)
 
 
 def test_bad_input():
     with pytest.raises(ValueError, match="unknown dataset"):
-        G.make_config("plastic")
+        make_config("plastic")
     with pytest.raises(ValueError, match="resolution"):
-        G.make_config("glossy", resolution=0)
+        make_config("glossy", resolution=0)
     with pytest.raises(ValueError, match="envs-per-object"):
-        G.make_config("glossy", num_envmaps=2, envs_per_object=3)
+        make_config("glossy", num_envmaps=2, envs_per_object=3)
     with pytest.raises(ValueError, match="shard"):
-        G.parse_shard("3/2")
+        parse_shard("3/2")
     with pytest.raises(DataError, match="cannot write"):
-        G.generate(tiny_config(), "/proc/no_such_dir/ds", workers=1, progress=False)
+        generate(tiny_config(), "/proc/no_such_dir/ds", workers=1, progress=False)
 
 
 def test_plan_is_deterministic_and_materials_follow_the_paper():
-    a, b = G.plan(tiny_config("glossy", num_objects=10, num_envmaps=10)), G.plan(tiny_config("glossy", num_objects=10, num_envmaps=10))
+    a, b = plan(tiny_config("glossy", num_objects=10, num_envmaps=10)), plan(tiny_config("glossy", num_objects=10, num_envmaps=10))
     assert a == b
     assert len(a["splits"]["objects"]["test"]) == 2 and len(a["splits"]["envmaps"]["test"]) == 2
     for o in a["objects"]:
@@ -229,16 +233,16 @@ def test_plan_is_deterministic_and_materials_follow_the_paper():
         assert set(o["envmaps"]) <= set(pool)
     assert a["splits"]["test_objects_see_only_test_envmaps"]
     # the default size keeps the test split unseen (objects and env maps) with 3 maps per object
-    default = G.plan(G.make_config("glossy"))
+    default = plan(make_config("glossy"))
     assert default["splits"]["test_objects_see_only_test_envmaps"]
     assert all(set(o["envmaps"]) <= set(default["splits"]["envmaps"]["test"])
                for o in default["objects"] if o["split"] == "test")
-    d = G.plan(tiny_config("diffuse", num_objects=10))
+    d = plan(tiny_config("diffuse", num_objects=10))
     assert all(o["material"]["subsurface_weight"] > 0 for o in d["objects"])
     tones = sorted(o["tone"] for o in d["objects"])
     assert all(k / 10 <= t < (k + 1) / 10 for k, t in enumerate(tones))  # balanced skin tones
-    assert G.azimuths(tiny_config("diffuse", views=12))[0] == -82.5
-    assert G.azimuths(tiny_config("metallic", views=24))[1] == 15.0
+    assert azimuths(tiny_config("diffuse", views=12))[0] == -82.5
+    assert azimuths(tiny_config("metallic", views=24))[1] == 15.0
 
 
 def test_optional_settings_enter_the_config_only_when_set():
@@ -246,8 +250,8 @@ def test_optional_settings_enter_the_config_only_when_set():
     so datasets made before these options resume with the same command."""
     from datagen.__main__ import build_parser
 
-    plain = G.config_dict(G.make_config("glossy"))
+    plain = config_dict(make_config("glossy"))
     assert not {"denoise", "envmaps_dir", "procedural_envmaps"} & set(plain)
-    assert G.config_dict(G.make_config("glossy", denoise=True))["denoise"] is True
+    assert config_dict(make_config("glossy", denoise=True))["denoise"] is True
     args = build_parser().parse_args(["--dataset", "diffuse", "--out", "x", "--denoise"])
     assert args.denoise is True and args.envmaps is None

@@ -1,0 +1,58 @@
+"""The worker processes that render (bpy is not thread-safe): started in batches and replaced (bpy leaks
+memory)."""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+
+_THREADS = 0  # Cycles threads per worker (0: every core)
+
+
+def cycles_threads() -> int:
+    """Cycles threads for this worker, as the run chose them."""
+    return _THREADS
+
+
+def init_worker(threads: int) -> None:
+    """Set up a fresh worker: quiet stdout, ``bpy`` imported once."""
+    global _THREADS
+    _THREADS = threads
+    # Blender prints a line per render ("Saved: ...") on stdout: keep the parent's progress bar clean.
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.close(devnull)
+    # A parent that imported bpy has Blender's script folders (holding a pure-Python ``bpy`` package)
+    # on sys.path, and spawn copies that path; drop them so the real module is found.
+    sys.path[:] = [p for p in sys.path if f"{os.sep}bpy{os.sep}" not in p]
+    import bpy  # noqa: F401  (pay the import once per worker)
+
+
+def completed(tasks, workers: int, threads: int, recycle: int):
+    """Results of ``tasks`` [(fn, args)] as they finish; a failed task stops the run with its error.
+
+    Workers are recycled (bpy leaks memory) by running the tasks in batches, each in a fresh pool. The
+    pool's own ``max_tasks_per_child`` deadlocks on Python 3.11 when a worker retires, so it is not used.
+    """
+    ctx = mp.get_context("spawn")
+    batch = max(1, workers) * max(1, recycle)
+    for start in range(0, len(tasks), batch):
+        with ProcessPoolExecutor(max(1, workers), mp_context=ctx, initializer=init_worker,
+                                 initargs=(threads,)) as pool:
+            futures = [pool.submit(fn, *a) for fn, a in tasks[start:start + batch]]
+            try:
+                yield from _results(futures)
+            finally:
+                for f in futures:
+                    f.cancel()
+
+
+def _results(futures):
+    for fut in as_completed(futures):
+        try:
+            yield fut.result()
+        except BrokenProcessPool as e:
+            raise RuntimeError("a datagen worker process died (crash or out of memory); rerun the "
+                               "same command to resume, finished samples are kept") from e
