@@ -17,13 +17,15 @@ On-disk format (one folder per dataset; every path comes from :class:`datagen.la
     samples/obj_0003_env_0007/sample.json         object, env map, material, seeds, files + sizes, timing (done marker)
     preview.png                                   contact sheet
     timing/shard_0_of_1.json                      wall/Cycles time of a run
+    .datagen_shard_0_of_1.lock                    held while a run writes the folder (datagen.locking)
 
 Every file is written atomically (temp + rename) and a folder counts as finished only once its json
-marker exists, so a killed run loses at most the samples in flight and a rerun resumes.
+marker exists, so a killed run loses at most the samples in flight and a rerun resumes. One run per
+folder (and shard) at a time: a second one is refused.
 
 The parts: :mod:`datagen.config` (settings, presets), :mod:`datagen.plan` (seeds, splits, materials),
 :mod:`datagen.manifest` (the manifest and the checks before resuming), :mod:`datagen.tasks` (what a
-worker makes), :mod:`datagen.workers` (the worker processes); this module runs them.
+worker makes), :mod:`datagen.workers` (the worker processes), :mod:`datagen.locking`; this module runs them.
 
 Environment maps are procedural (outdoor skies, indoor rooms: :mod:`datagen.envmaps`) unless
 ``envmaps_dir`` names a folder of your own HDRIs (:mod:`datagen.envmap_files`): then those files are
@@ -41,6 +43,7 @@ from dibrpp.io import DataError
 
 from .config import Config
 from .layout import DatasetLayout
+from .locking import exclusive_run, manifest_lock
 from .manifest import build_manifest, check_manifest, verify_sample, write_manifest
 from .plan import plan
 from .records import write_json
@@ -55,30 +58,34 @@ from .workers import init_worker as _init_worker  # noqa: F401
 
 def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1), recycle: int = 4,
              progress: bool = True, preview: bool = True) -> dict:
-    """Generate (or resume) a dataset into ``out``; returns a timing summary."""
+    """Generate (or resume) a dataset into ``out``; returns a timing summary.
+
+    FolderBusy (a DataError) at once if another run is writing the same shard into ``out``."""
     cfg.validate()
     out = Path(out)
     sources = _scan_envmap_files(cfg)  # read and check every file before anything renders
     _check_writable(out)
-    p = plan(cfg)
-    manifest = build_manifest(cfg, p, sources)
-    check_manifest(out, manifest)
-    write_manifest(out, manifest)
-    si, sn = shard
-    mine = [o for o in p["objects"] if o["index"] % sn == si]
-    _verify_finished_samples(out, mine, cfg)
-    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-    run = dict(workers=workers, threads=threads, recycle=recycle, progress=progress)
-    t_start = time.perf_counter()
-    stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
-    stats["asset_s"] = _make_assets(out, cfg, p, sources, mine, run)
-    stats.update(_render_samples(out, cfg, mine, run))
-    stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard))
-    write_json(DatasetLayout(out).timing(si, sn), stats)
-    if preview and _all_samples_finished(out, p):
-        from .preview import contact_sheet
+    with exclusive_run(out, shard):
+        p = plan(cfg)
+        manifest = build_manifest(cfg, p, sources)
+        with manifest_lock(out):  # no other shard may write a different manifest between check and write
+            check_manifest(out, manifest)
+            write_manifest(out, manifest)
+        si, sn = shard
+        mine = [o for o in p["objects"] if o["index"] % sn == si]
+        _verify_finished_samples(out, mine, cfg)
+        threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+        run = dict(workers=workers, threads=threads, recycle=recycle, progress=progress)
+        t_start = time.perf_counter()
+        stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
+        stats["asset_s"] = _make_assets(out, cfg, p, sources, mine, run)
+        stats.update(_render_samples(out, cfg, mine, run))
+        stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard))
+        write_json(DatasetLayout(out).timing(si, sn), stats)
+        if preview and _all_samples_finished(out, p):
+            from .preview import contact_sheet
 
-        contact_sheet(out)
+            contact_sheet(out)
     return stats
 
 

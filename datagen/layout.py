@@ -16,6 +16,7 @@ The tree (one folder per dataset)::
     manifest.json                                 generator version, config, seeds, splits, camera, ...
     preview.png                                   contact sheet
     timing/shard_0_of_1.json                      wall / Cycles time of a run
+    .datagen_shard_0_of_1.lock, .datagen_manifest.lock   held by a running datagen (see datagen.locking)
     envmaps/env_0007.exr | .png | .json           linear HDR equirect map, its preview, its record (done marker)
     objects/obj_0003/mesh.npz | mesh.obj | mesh.mtl | texture.png | object.json
     samples/obj_0003_env_0007/sample.json         done marker of the sample
@@ -91,6 +92,15 @@ class DatasetLayout:
 
     def timing(self, shard_index: int, shard_count: int) -> Path:
         return self.root / "timing" / f"shard_{shard_index}_of_{shard_count}.json"
+
+    def run_lock(self, shard_index: int = 0, shard_count: int = 1) -> Path:
+        """Locked (flock) by the datagen run writing this shard; left in place after it ends."""
+        return self.root / f".datagen_shard_{shard_index}_of_{shard_count}.lock"
+
+    @property
+    def manifest_lock(self) -> Path:
+        """Locked (flock) by a datagen run while it checks and writes the manifest."""
+        return self.root / ".datagen_manifest.lock"
 
     # ------------------------------------------------------------------ environment maps
     @property

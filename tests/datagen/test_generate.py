@@ -85,7 +85,7 @@ def test_every_file_written_is_a_path_of_the_layout(dataset):
     out, _ = dataset
     lay = DatasetLayout(out)
     m = json.loads(lay.manifest.read_text())
-    named = {lay.manifest, lay.preview, lay.timing(0, 1)}
+    named = {lay.manifest, lay.preview, lay.timing(0, 1), lay.run_lock(0, 1), lay.manifest_lock}
     for e in sorted({e for o in m["objects"] for e in o["envmaps"]}):
         named |= {lay.envmap(e), lay.envmap_png(e), lay.envmap_json(e)}
     for o in m["objects"]:
