@@ -21,7 +21,7 @@ On-disk format (one folder per dataset; every path comes from :class:`datagen.la
 
 Every file is written atomically (temp + rename) and a folder counts as finished only once its json
 marker exists, so a killed run loses at most the samples in flight and a rerun resumes. One run per
-folder (and shard) at a time: a second one is refused.
+folder (and shard) at a time: a second one is refused. Workers die with their run.
 
 The parts: :mod:`datagen.config` (settings, presets), :mod:`datagen.plan` (seeds, splits, materials),
 :mod:`datagen.manifest` (the manifest and the checks before resuming), :mod:`datagen.tasks` (what a

@@ -13,7 +13,7 @@ from .config import Config
 from .layout import DEFAULT_CAMERA, DatasetLayout
 from .plan import ENV, OBJ, azimuths, render_seed, seed_for
 from .records import write_json
-from .workers import cycles_threads
+from .workers import cycles_threads, exit_if_orphaned
 
 
 def _task_envmap(out: str, i: int, make) -> dict:
@@ -26,6 +26,7 @@ def _task_envmap(out: str, i: int, make) -> dict:
         return dict(kind="envmap", index=i, skipped=True)
     t0 = time.perf_counter()
     env, record = make()
+    exit_if_orphaned()
     write_exr(layout.envmap(i), env)
     write_png(layout.envmap_png(i), env / (1 + env))
     write_json(layout.envmap_json(i), dict(index=i, **record, shape=list(env.shape),
@@ -70,6 +71,7 @@ def task_object(out: str, cfg: Config, i: int, info: dict) -> dict:
     obj = shapes.make_shape(cfg.shape_kind, rng, grid=cfg.grid)
     uvs, face_uvs = shapes.unwrap(obj["verts"], obj["faces"], resolution=cfg.texture_size)
     tex, style = textures.bake_texture(obj, uvs, face_uvs, cfg.texture_size, rng, tone=info["tone"])
+    exit_if_orphaned()
     _write_object_files(layout, i, obj, uvs, face_uvs, tex)
     meta = dict(index=i, kind=cfg.shape_kind, split=info["split"], material=info["material"], envmaps=info["envmaps"],
                 shape_params=obj["shape"].params, paint=style, normalisation=obj["normalisation"],
@@ -112,6 +114,7 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
     total = time.perf_counter() - t0
     timing = dict(total_s=total, cycles_s=scene.render_seconds, build_s=build_s, views_rendered=rendered,
                   renders=scene.renders)
+    exit_if_orphaned()
     write_json(layout.sample_json(i, env), _sample_record(layout, cfg, i, env, info, timing))
     return dict(kind="sample", obj=i, env=env, skipped=False, views=cfg.views, rendered=rendered,
                 total_s=total, cycles_s=scene.render_seconds)
@@ -150,6 +153,7 @@ def _render_view(scene, layout: DatasetLayout, cfg: Config, i: int, env: int, v:
     res = cycles.render(scene)
     rgba, albedo = res["rgba"], res["albedo"]
     exr, png, mask, albedo_exr, camera_json = _view_paths(layout, i, env, v)
+    exit_if_orphaned()
     write_exr(exr, rgba)
     write_png(png, rgba)
     write_png(mask, rgba[..., 3])
