@@ -6,7 +6,9 @@ Bad input prints one line ``error: ...`` and exits with status 2, writing nothin
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+import tempfile
 from pathlib import Path
 
 import torch
@@ -59,12 +61,32 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _check(args) -> None:
-    if Path(args.out).suffix.lower() not in (".exr", ".png"):
-        raise CLIError(f"--out {args.out}: use a .exr (linear RGBA) or .png (sRGB) file name")
-    out_dir = Path(args.out).resolve().parent
+def _check_out(out: str) -> None:
+    """A .exr / .png file name in an existing folder this process can write to (checked now, not after
+    the render)."""
+    if Path(out).suffix.lower() not in (".exr", ".png"):
+        raise CLIError(f"--out {out}: use a .exr (linear RGBA) or .png (sRGB) file name")
+    if Path(out).is_dir():
+        raise CLIError(f"--out {out}: is a folder; give a file name inside it")
+    out_dir = Path(out).resolve().parent
     if not out_dir.is_dir():
-        raise CLIError(f"--out {args.out}: folder {out_dir} does not exist")
+        raise CLIError(f"--out {out}: folder {out_dir} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=out_dir):
+            pass
+    except OSError as e:
+        raise CLIError(f"--out {out}: cannot write into folder {out_dir} ({e.strerror}); choose another "
+                       "folder or change its permissions") from None
+
+
+def _check(args) -> None:
+    for flag, path in (("--mesh", args.mesh), ("--texture", args.texture), ("--envmap", args.envmap)):
+        if path is not None and not Path(path).is_file():
+            raise CLIError(f"{flag} {path}: no such file")
+    _check_out(args.out)
+    for name in ("roughness", "metallic", "specular", "distance", "elevation", "azimuth", "fov"):
+        if not math.isfinite(getattr(args, name)):
+            raise CLIError(f"--{name} {getattr(args, name)}: must be a finite number")
     for name, lo, hi in (("roughness", 0, 1), ("metallic", 0, 1), ("specular", 0, 1)):
         value = getattr(args, name)
         if not lo <= value <= hi:
@@ -83,6 +105,12 @@ def _check(args) -> None:
         raise CLIError("--envmap is required (or pass --albedo-only)")
     if args.device == "cuda" and not torch.cuda.is_available():
         raise CLIError("--device cuda: no CUDA device is available to torch here; use --device cpu")
+
+
+def _check_equirect(path, env) -> None:
+    if env.width != 2 * env.height or env.height < 2:
+        raise CLIError(f"--envmap {path}: {env.width} x {env.height} pixels is not an equirectangular map (width "
+                       "must be exactly twice the height); convert it to a 2:1 latitude-longitude map")
 
 
 def render_command(args) -> None:
@@ -108,11 +136,15 @@ def render_command(args) -> None:
         from .lights import EnvMap, fit_sg_to_envmap, project_envmap_to_sh
 
         env = EnvMap.from_exr(args.envmap).to(device)
+        _check_equirect(args.envmap, env)
         light = {"mc": lambda: env, "sg": lambda: fit_sg_to_envmap(env, args.sg_lobes),
                  "sh": lambda: project_envmap_to_sh(env)}[args.shading]()
         with torch.no_grad():
             image = Renderer(args.shading, spp=args.spp, seed=args.seed)(mesh, cameras, material, light).image[0]
-    io.write_image(args.out, image)
+    try:
+        io.write_image(args.out, image)
+    except OSError as e:  # e.g. the disk filled up or the folder changed during the render
+        raise CLIError(f"--out {args.out}: cannot write the image ({e})") from None
 
 
 def main(argv=None) -> int:

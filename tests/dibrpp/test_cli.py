@@ -1,5 +1,9 @@
+import os
+import stat
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,3 +71,74 @@ def test_cli_bad_input_gives_one_error_line_and_no_output(assets, args, message)
     lines = [line for line in r.stderr.strip().splitlines() if line]
     assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], r.stderr
     assert not out.exists()
+
+
+def _read_only_folder(tmp_path):
+    """A folder this process cannot create files in (root ignores permission bits: use sysfs there)."""
+    folder = tmp_path / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        (folder / "probe").touch()
+    except PermissionError:
+        return folder
+    (folder / "probe").unlink()
+    if _cannot_create_in("/sys"):
+        return Path("/sys")
+    pytest.skip("no folder this process cannot write to")
+
+
+def _cannot_create_in(folder) -> bool:
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return False
+    except OSError:
+        return True
+
+
+@pytest.fixture(scope="module")
+def more_assets(assets):
+    d = equirect_directions(32, 32)  # square: not an equirect map
+    io.write_exr(assets / "square.exr", 0.5 + d[..., 2:].clamp_min(0).expand(-1, -1, 3))
+    return assets
+
+
+@pytest.mark.parametrize("args,message", [
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/square.exr"), "{a}/square.exr: 32 x 32 pixels is not an equirect"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--distance", "nan"), "--distance nan: must be a finite"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--azimuth", "inf"), "--azimuth inf: must be a finite"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--fov", "180"), "--fov 180.0"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--spp", "many"), "--spp: invalid int value"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--resolution", "0"), "--resolution 0"),
+    (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/missing.exr"), "missing.exr: no such file"),
+    (("--mesh", "{a}/sphere.obj", "--texture", "{a}/missing.png", "--albedo-only"), "missing.png: no such file"),
+    (("--mesh", "{a}", "--envmap", "{a}/env.exr"), "no such file"),
+])
+def test_cli_more_bad_input_gives_one_error_line(more_assets, args, message):
+    out = more_assets / "should_not_exist.exr"
+    r = run(*BASE, *[a.format(a=more_assets) for a in args], "--out", out)  # args last: they win over BASE
+    lines = [line for line in r.stderr.strip().splitlines() if line]
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:"), r.stderr
+    assert message.format(a=more_assets) in lines[0], r.stderr
+    assert not out.exists()
+
+
+def test_cli_output_into_a_read_only_folder_or_onto_a_folder(assets, tmp_path):
+    folder = _read_only_folder(tmp_path)
+    for out, message in ((folder / "image.png", f"cannot write into folder {folder}"),
+                         (assets, "is a folder"), (tmp_path / "x.png" / "y.png", "does not exist")):
+        if out == assets:
+            out = assets / "dir.png"
+            out.mkdir(exist_ok=True)
+        r = run("--mesh", assets / "sphere.obj", "--albedo-only", *BASE, "--out", out)
+        lines = [line for line in r.stderr.strip().splitlines() if line]
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error:") and message in lines[0], r.stderr
+
+
+def test_cli_output_follows_the_umask(assets):
+    out = assets / "umask.png"
+    r = subprocess.run([sys.executable, "-m", "dibrpp", "render", "--mesh", str(assets / "sphere.obj"), "--albedo-only",
+                        *map(str, BASE), "--out", str(out)], capture_output=True, text=True,
+                       preexec_fn=lambda: os.umask(0o022))
+    assert r.returncode == 0, r.stderr
+    assert stat.S_IMODE(out.stat().st_mode) == 0o644
