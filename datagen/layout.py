@@ -8,7 +8,8 @@ Blender in::
     layout = DatasetLayout("data/glossy")
     layout.manifest                       # data/glossy/manifest.json
     layout.view_image(3, 7, 5)            # data/glossy/samples/obj_0003_env_0007/view_05.exr
-    camera = CameraSetup.from_manifest(json.loads(layout.manifest.read_text()))
+    manifest = layout.read_manifest()     # checked: ManifestError (a ValueError) names the file otherwise
+    camera = CameraSetup.from_manifest(manifest)
     camera.distance, camera.elevation_deg, camera.fov    # 60.0, 27.0, 0.691 (radians)
 
 The tree (one folder per dataset)::
@@ -24,12 +25,13 @@ The tree (one folder per dataset)::
 """
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["CameraSetup", "DEFAULT_CAMERA", "DatasetLayout"]
+__all__ = ["CameraSetup", "DEFAULT_CAMERA", "DatasetLayout", "ManifestError"]
 
 
 @dataclass(frozen=True)
@@ -49,17 +51,58 @@ class CameraSetup:
 
     @classmethod
     def from_manifest(cls, manifest: dict) -> "CameraSetup":
-        """The set-up a manifest records under ``camera``; KeyError / ValueError / TypeError if it has none."""
+        """The set-up a manifest records under ``camera``: KeyError if it has none, ValueError (saying what is
+        wrong) if it is malformed."""
+        if not isinstance(manifest, dict):
+            raise ValueError(f"a manifest must be a JSON object, found {type(manifest).__name__}")
         c = manifest["camera"]
-        res = c.get("resolution")
-        return cls(distance=float(c["distance"]), elevation_deg=float(c["elevation_deg"]), fov=float(c["fov"]),
-                   azimuths_deg=tuple(float(a) for a in c.get("azimuths_deg", ())),
-                   resolution=None if res is None else int(res))
+        if not isinstance(c, dict):
+            raise ValueError(f"the manifest's 'camera' must be an object, found {type(c).__name__}")
+        try:
+            res = c.get("resolution")
+            return cls(distance=float(c["distance"]), elevation_deg=float(c["elevation_deg"]), fov=float(c["fov"]),
+                       azimuths_deg=tuple(float(a) for a in c.get("azimuths_deg", ())),
+                       resolution=None if res is None else int(res))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"the manifest's 'camera' is malformed ({e}); expected numbers distance, "
+                             "elevation_deg, fov, a list azimuths_deg and an integer resolution") from e
 
     def to_manifest(self) -> dict:
         """The manifest's ``camera`` entry (key order as the generator has always written it)."""
         return dict(distance=self.distance, elevation_deg=self.elevation_deg, fov=self.fov,
                     azimuths_deg=list(self.azimuths_deg), resolution=self.resolution)
+
+
+class ManifestError(ValueError):
+    """A manifest.json that cannot be read as a datagen manifest."""
+
+
+_REGENERATE = "regenerate the dataset with `python -m datagen` (or restore its manifest.json)"
+
+
+def _manifest_problem(manifest) -> str | None:
+    """What is wrong with the structure of a parsed manifest, or None."""
+    if not isinstance(manifest, dict):
+        return f"the file holds a JSON {type(manifest).__name__}, not an object"
+    config = manifest.get("config")
+    if not isinstance(config, dict):
+        return "'config' is missing or not an object"
+    for key in ("views", "resolution"):
+        if not isinstance(config.get(key), int) or config[key] <= 0:
+            return f"config '{key}' is {config.get(key)!r}, not a positive integer"
+    objects = manifest.get("objects")
+    if not isinstance(objects, list):
+        return "'objects' is missing or not a list"
+    for o in objects:
+        if not (isinstance(o, dict) and isinstance(o.get("index"), int) and isinstance(o.get("split"), str)
+                and isinstance(o.get("envmaps"), list) and all(isinstance(e, int) for e in o["envmaps"])
+                and isinstance(o.get("material"), dict)):
+            return f"an entry of 'objects' is not {{index, split, envmaps: [int], material: {{...}}}}: {str(o)[:80]}"
+    try:
+        CameraSetup.from_manifest(manifest)
+    except (KeyError, ValueError) as e:
+        return f"'camera' is missing or malformed ({e})"
+    return None
 
 
 # The generator's cameras: Blender's default camera (50 mm lens on a 36 mm sensor: 39.6 deg) at 60 units,
@@ -101,6 +144,21 @@ class DatasetLayout:
     def manifest_lock(self) -> Path:
         """Locked (flock) by a datagen run while it checks and writes the manifest."""
         return self.root / ".datagen_manifest.lock"
+
+    def read_manifest(self) -> dict:
+        """The manifest, checked to have the structure the writer gives it (config, objects, camera);
+        ManifestError naming the file and what is wrong otherwise."""
+        path = self.manifest
+        try:
+            manifest = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ManifestError(f"{path}: no such file; is {self.root} a dataset written by `python -m datagen`?") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise ManifestError(f"{path}: unreadable or corrupt JSON ({e}); {_REGENERATE}") from e
+        problem = _manifest_problem(manifest)
+        if problem:
+            raise ManifestError(f"{path}: not a datagen manifest: {problem}; {_REGENERATE}")
+        return manifest
 
     # ------------------------------------------------------------------ environment maps
     @property

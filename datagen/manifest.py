@@ -10,9 +10,11 @@ from dibrpp.io import DataError
 from .config import Config, config_dict
 from .layout import DEFAULT_CAMERA, DatasetLayout
 from .plan import azimuths
-from .records import read_json, write_json
+from .records import read_record, write_json
 
 GENERATOR_VERSION = "1.1.0"
+
+_NOT_OURS = "move it away or choose another --out"
 
 
 def _renderer(cfg: Config) -> dict:
@@ -56,29 +58,44 @@ def check_manifest(out: Path, manifest: dict) -> None:
     path = DatasetLayout(out).manifest
     if not path.exists():
         return
-    old = read_json(path)
-    if old.get("config") != manifest["config"] or old.get("generator_version") != manifest["generator_version"]:
-        keys = list(manifest["config"]) + [k for k in old.get("config", {}) if k not in manifest["config"]]
-        diff = {k: (old.get("config", {}).get(k), manifest["config"].get(k)) for k in keys
-                if old.get("config", {}).get(k) != manifest["config"].get(k)}
+    old = read_record(path, _NOT_OURS)
+    old_config = old.get("config", {})
+    if not isinstance(old_config, dict):
+        raise DataError(f"{path}: 'config' is {type(old_config).__name__}, not an object: not a datagen manifest; "
+                        f"{_NOT_OURS}")
+    if old_config != manifest["config"] or old.get("generator_version") != manifest["generator_version"]:
+        keys = list(manifest["config"]) + [k for k in old_config if k not in manifest["config"]]
+        diff = {k: (old_config.get(k), manifest["config"].get(k)) for k in keys
+                if old_config.get(k) != manifest["config"].get(k)}
         raise DataError(f"{out} holds a dataset generated with different settings {diff or '(generator version)'}; "
                         "use another --out or the same settings")
     if old.get("envmap_sources") != manifest.get("envmap_sources"):
-        was = {s["file"]: s["sha256"][:12] for s in old.get("envmap_sources") or []}
-        now = {s["file"]: s["sha256"][:12] for s in manifest.get("envmap_sources") or []}
+        was, now = _source_hashes(path, old), _source_hashes(path, manifest)
         changed = sorted(set(was.items()) ^ set(now.items()))
         raise DataError(f"{out} was generated from other env map files (changed: {changed[:4]}); put the "
                         "original files back in the --envmaps folder or generate into another --out")
 
 
+def _source_hashes(path: Path, manifest: dict) -> dict:
+    """{file name: start of its sha256} of a manifest's env map files."""
+    try:
+        return {s["file"]: s["sha256"][:12] for s in manifest.get("envmap_sources") or []}
+    except (KeyError, TypeError) as e:
+        raise DataError(f"{path}: 'envmap_sources' is not a list of {{file, sha256}} records ({e!r}); "
+                        f"{_NOT_OURS}") from e
+
+
 def verify_sample(d: Path, cfg: Config) -> None:
     """A finished sample folder ``d`` (:meth:`DatasetLayout.sample_dir`) still holds every file it recorded,
     at the recorded size, and as many views as ``cfg`` asks for."""
-    meta = read_json(d / "sample.json")
-    for name, size in meta.get("files", {}).items():
+    fix = f"delete {d} and rerun to regenerate it"
+    meta = read_record(d / "sample.json", fix)
+    files = meta.get("files", {})
+    if not isinstance(files, dict):
+        raise DataError(f"{d / 'sample.json'}: 'files' is not an object of file sizes; {fix}")
+    for name, size in files.items():
         p = d / name
         if not p.is_file() or p.stat().st_size != size:
-            raise DataError(f"{d}: finished sample is corrupt ({name} missing or changed size); "
-                            f"delete {d} and rerun to regenerate it")
+            raise DataError(f"{d}: finished sample is corrupt ({name} missing or changed size); {fix}")
     if meta.get("views") != cfg.views:
         raise DataError(f"{d}: sample has {meta.get('views')} views, config says {cfg.views}; use a new --out")

@@ -12,8 +12,13 @@ def write_json(path: Path, data) -> None:
         tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
 
 
-def read_json(path: Path):
+def read_record(path: Path, fix: str = "delete its folder to regenerate it") -> dict:
+    """A JSON object written by datagen; DataError naming the file if it is unreadable, not JSON or not an
+    object. ``fix`` says what the user can do about it."""
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise DataError(f"{path}: unreadable or corrupt JSON ({e}); delete its folder to regenerate it") from e
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DataError(f"{path}: unreadable or corrupt JSON ({e}); {fix}") from e
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: expected a JSON object ({{...}}), found {type(data).__name__}; {fix}")
+    return data
