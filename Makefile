@@ -21,9 +21,11 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-variants test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
+.PHONY: setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
 
 help:
+	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~4.5 h)"
+	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~25 min)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
@@ -31,7 +33,7 @@ help:
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
-	@echo "make train-variants   glossy SG ablations of our model: light colour, texture, edge antialiasing (F.1), light (README)"
+	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -96,50 +98,38 @@ train-%: $(VENV)/.installed
 bench-renderer: $(VENV)/.installed
 	$(PY) -m benchmarks.renderer --out results/bench
 
-# Runs for Tables D and E (glossy): DIB-R's diffuse-only shading with SG light, and K = 4, 8, 16 lobes.
+# Runs for Tables D and E (glossy): DIB-R's diffuse-only shading with SG light, and the registry's "paper"
+# variants (K = 4, 8, 16 lobes).
 train-ablations: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sh-sg --seed 0 --out $(RUNS)/glossy/sh-sg-seed0 --resume $(TRAIN_ARGS)
-	@set -e; for k in 4 8 16; do \
-	  $(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --lobes $$k --seed 0 --out $(RUNS)/glossy/sg-k$$k-seed0 --resume $(TRAIN_ARGS); \
+	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=paper
+
+# The named variants of pipelines/config.py (ablations of our model's choices and diagnostics that read the GT;
+# `python -m pipelines.train --list-variants`), each into runs/<dataset>/sg-<variant>-seed<s>.
+VARIANT_KINDS ?= ablation,diagnostic
+train-variants: $(VENV)/.installed
+	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=$(VARIANT_KINDS)
+
+train-variant-runs: $(VENV)/.installed
+	@set -e; $(PY) -m pipelines.train --variant-runs $(VARIANT_KINDS) | while read dataset variant seed; do \
+	  test -f $(DATA)/$$dataset/manifest.json || { echo "error: no dataset in $(DATA)/$$dataset; run 'make data-$$dataset' first"; exit 1; }; \
+	  echo "== $$dataset / sg / $$variant / seed $$seed"; \
+	  $(PY) -m pipelines.train --dataset $(DATA)/$$dataset --shading sg --variant $$variant --seed $$seed \
+	    --out $(RUNS)/$$dataset/sg-$$variant-seed$$seed --resume $(TRAIN_ARGS) < /dev/null; \
 	done
 
-# Ablations of our model choices (glossy SG): light of any colour instead of white-balanced, the texture
-# decoded from the global code instead of looked up in the input, nvdiffrast-style edge antialiasing
-# instead of DIB-R's soft silhouette (the paper's Sec. F.1), light scales exponential in the head's output,
-# that with the cross-view renders lit by another object's light under the same env map, and the image
-# loss only on renders in the other view of each pair, an L1 between the albedos predicted from an object's
-# two views, each albedo pulled down to the darker of the two views, the light head at 10x the learning
-# rate (with exponential scales), a curriculum that renders every object with its mean albedo for the first
-# 500 iterations; and diagnostics, not models: the mean albedo for the whole run (how well the light learns
-# when the albedo cannot hold reflections), the light supervised by the GT env map (on the map, and on the
-# rough-metal probe: what the encoder can reach when told the answer) and each object's GT roughness (how
-# much of the light's error is the roughness/light-blur ambiguity). Last, the cross-view renders swapped to
-# the same object under its other env map (--swap-light; two seeds), with the fast log-scaled light head,
-# and on the metallic set.
-train-variants: $(VENV)/.installed
-	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-colour free --out $(RUNS)/glossy/sg-free-light-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --texture global --out $(RUNS)/glossy/sg-global-texture-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --visibility edge_aa --out $(RUNS)/glossy/sg-edge-aa-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --out $(RUNS)/glossy/sg-log-light-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --shared-light --out $(RUNS)/glossy/sg-shared-light-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --cross-view-only --out $(RUNS)/glossy/sg-cross-view-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-consistency 1.0 --out $(RUNS)/glossy/sg-albedo-consistency-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-consistency 0.1 --out $(RUNS)/glossy/sg-albedo-consistency-0.1-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-darker 1.0 --out $(RUNS)/glossy/sg-albedo-darker-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --w-albedo-darker 0.1 --out $(RUNS)/glossy/sg-albedo-darker-0.1-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-scale log --light-lr-scale 10 --out $(RUNS)/glossy/sg-log-light-lr10-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 500 --out $(RUNS)/glossy/sg-flat-albedo-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --flat-albedo-iterations 1500 --out $(RUNS)/glossy/sg-flat-albedo-1500-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision map --out $(RUNS)/glossy/sg-light-supervised-map-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --light-supervision probe --out $(RUNS)/glossy/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --oracle-roughness --out $(RUNS)/glossy/sg-oracle-roughness-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --swap-light --out $(RUNS)/glossy/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 1 --swap-light --out $(RUNS)/glossy/sg-swap-light-seed1 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --seed 0 --swap-light --light-scale log --light-lr-scale 10 --out $(RUNS)/glossy/sg-swap-light-log-lr10-seed0 --resume $(TRAIN_ARGS)
-	@test -f $(DATA)/metallic/manifest.json || { echo "error: no dataset in $(DATA)/metallic; run 'make data-metallic' first"; exit 1; }
-	$(PY) -m pipelines.train --dataset $(DATA)/metallic --shading sg --seed 0 --swap-light --out $(RUNS)/metallic/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
+# The paper-style tables end to end: every dataset, every method and seed, Tables D/E, evaluation. Resumable:
+# rerun it after an interruption and it continues where it stopped.
+reproduce: data
+	@for d in $(DATASETS); do $(MAKE) --no-print-directory train-$$d || exit 1; done
+	@$(MAKE) --no-print-directory train-ablations
+	@$(MAKE) --no-print-directory eval
+
+# A first look: the glossy set, SG, seed 0, evaluated.
+first-look: data-glossy
+	@$(MAKE) --no-print-directory train-glossy METHODS=sg SEEDS=
+	@$(MAKE) --no-print-directory eval
 
 # More env maps, same objects: the glossy set with 200 maps instead of 40 (160 for training; the objects, their
 # split and the number of images are the glossy set's), SG trained on it (default, --swap-light, and the
@@ -151,8 +141,8 @@ study-maps: $(VENV)/.installed
 	  { echo "error: no run $(RUNS)/glossy/$$r; run 'make train-glossy train-variants' first"; exit 1; }; done
 	$(PY) -m datagen --dataset glossy --num-envmaps 200 --out $(DATA)/glossy-maps200
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --out $(RUNS)/glossy-maps200/sg-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --swap-light --out $(RUNS)/glossy-maps200/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --light-supervision probe --out $(RUNS)/glossy-maps200/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --variant swap-light --out $(RUNS)/glossy-maps200/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --variant light-supervised-probe --out $(RUNS)/glossy-maps200/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
 	@set -e; for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do \
 	  $(PY) -m pipelines.evaluate --runs $(RUNS)/glossy/$$r --dataset $(DATA)/glossy-maps200 --out results/eval-maps200; \
 	done

@@ -54,7 +54,7 @@ from benchmarks.envmap_task import (INIT_RADIANCE, QUICK, SIZES, Task, sky_radia
 from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import conventions as conv
 from dibrpp import native
-from pipelines.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
+from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
 
 PAPER = {"dibrpp": {"time_s": 5.4, "peak_mb": 1475}, "mitsuba": {"time_s": 9.8, "peak_mb": 3287}}  # Table B, GPU
 

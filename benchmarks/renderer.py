@@ -23,7 +23,7 @@ from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere, raste
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.renderer import build_gbuffer, build_gbuffer_compiled
 from dibrpp.shading import MCShader, SGShader
-from pipelines.formatting import format_number, markdown_table, write_csv
+from dibrpp.formatting import format_number, markdown_table, write_csv
 
 SG_FLOP_PER_PIXEL_LOBE = 180  # inner products of the diffuse and specular lobes, RGB
 

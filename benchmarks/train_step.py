@@ -9,17 +9,20 @@ writes Markdown/CSV under --out.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import torch
 
+from datagen.reader import MultiViewDataset
+from dibrpp.formatting import markdown_table, write_csv
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.formatting import markdown_table, write_csv
-from pipelines.train import TrainConfig, TrainingData, make_model, make_optimizer, make_renderer, multiview_losses
+from pipelines.config import TrainConfig
+from pipelines.dataset import TrainingViews
+from pipelines.objective import multiview_losses
+from pipelines.runs import make_model, make_optimizer, make_renderer
 
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
@@ -27,7 +30,8 @@ PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> dict:
     """Median seconds per phase over ``iterations`` training steps (after ``warmup``)."""
     torch.manual_seed(config.seed)
-    data = TrainingData(config.dataset, config.image_size)
+    data = TrainingViews(MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False),
+                         config.image_size)
     model = make_model(config)
     opt = make_optimizer(model, config)
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
@@ -61,12 +65,13 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=2, help="untimed iterations first (torch.compile compiles here)")
     ap.add_argument("--out", default="results/bench")
     args = ap.parse_args(argv)
-    if not Path(args.dataset, "manifest.json").exists():
-        print(f"error: no dataset at {args.dataset}; run `make data` (or pass --dataset)", file=sys.stderr)
+    try:
+        resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
+    except DataError as e:
+        print(f"error: {e}; run `make data` (or pass --dataset)", file=sys.stderr)
         return 2
     results = []
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of {args.iterations} iterations")
-    resolution = json.loads(Path(args.dataset, "manifest.json").read_text())["config"]["resolution"]
     for shading in args.shading:
         config = TrainConfig.preset("cpu", dataset=args.dataset, shading=shading, image_size=resolution)
         try:

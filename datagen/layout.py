@@ -1,5 +1,5 @@
 """The on-disk layout of a generated dataset, in one place: the writer (:mod:`datagen.generate`,
-:mod:`datagen.preview`) and the reader (:mod:`pipelines.dataset`) both ask :class:`DatasetLayout` for
+:mod:`datagen.preview`) and the reader (:mod:`datagen.reader`) both ask :class:`DatasetLayout` for
 every path, and :class:`CameraSetup` reads the orbit camera back from the manifest.
 
 This module imports neither ``bpy`` nor ``torch`` (only the standard library), so a reader never pulls

@@ -1,208 +1,78 @@
-"""Loader for the datasets `python -m datagen` writes (format: datagen/generate.py docstring, README).
+"""Training tensors from a dataset: every training view decoded once, and the batches of view pairs.
 
-    ds = MultiViewDataset("data/metallic", split="train", views_per_item=2)
-    loader = torch.utils.data.DataLoader(ds, batch_size=8, shuffle=True, collate_fn=collate)
-    batch = next(iter(loader))
-    batch["image"]    # (B, V, H, W, 4) linear RGBA (alpha = mask);  batch["cameras"]: dibrpp Cameras of B*V views
-    batch["albedo"]   # (B, V, H, W, 3) linear base colour x coverage;  batch["envmap"]: (B, He, We, 3)
-
-Each item is one view of one (object, env map) sample plus ``views_per_item - 1`` other views of the
-same sample (for the multi-view consistency loss), chosen deterministically from ``seed`` and the
-index. Ground-truth meshes are per object (``ds.mesh(obj)`` -> dibrpp Meshes with UVs,
-``ds.texture(obj)``). Everything read is validated (missing views, shapes, NaN/Inf) and decoded
-tensors are cached in memory. Paths come from :class:`datagen.layout.DatasetLayout` (``ds.layout``),
-which imports neither bpy nor torch; ``ds.camera_setup`` is the orbit camera of the manifest
-(distance, elevation, fov), for code that must place cameras like the data's.
+The dataset's format is read by :class:`datagen.reader.MultiViewDataset` (the one reader); this module owns
+what training draws from it: which (sample, view pair) items form an iteration's batch, and their partners.
 """
 from __future__ import annotations
 
-import json
-from collections import OrderedDict
-from pathlib import Path
-
-import numpy as np
 import torch
 
-from datagen.layout import CameraSetup, DatasetLayout
-from dibrpp.camera import Cameras
-from dibrpp.io import DataError, read_exr, read_png
-from dibrpp.mesh import Meshes
+from datagen.reader import MultiViewDataset
+from dibrpp.io import DataError
 
 
-class MultiViewDataset(torch.utils.data.Dataset):
-    def __init__(self, root, split: str = "train", views_per_item: int = 2, image: str = "linear",
-                 cache_items: int = 4096, seed: int = 0, with_envmap: bool = True):
-        self.root = Path(root)
-        self.layout = DatasetLayout(self.root)
-        if split not in ("train", "test", "all"):
-            raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
-        if image not in ("linear", "srgb"):
-            raise ValueError(f"image must be 'linear' (EXR) or 'srgb' (PNG), got {image!r}")
-        mpath = self.layout.manifest
-        if not mpath.is_file():
-            raise DataError(f"{self.root}: no manifest.json; is this a dataset folder written by `python -m datagen`?")
-        try:
-            self.manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as e:
-            raise DataError(f"{mpath}: corrupt JSON ({e})") from e
-        cfg = self.manifest["config"]
-        self.resolution = int(cfg["resolution"])
-        self.num_views = int(cfg["views"])
-        if not 1 <= views_per_item <= self.num_views:
-            raise ValueError(f"views_per_item must be in [1, {self.num_views}], got {views_per_item}")
-        self.views_per_item = views_per_item
-        self.image = image
-        self.seed = seed
-        self.with_envmap = with_envmap
-        objs = [o for o in self.manifest["objects"] if split == "all" or o["split"] == split]
-        self.samples = [(o["index"], e) for o in objs for e in o["envmaps"]]
-        self.materials = {o["index"]: o["material"] for o in objs}
-        self._validate_files()
-        self._cache: OrderedDict = OrderedDict()
-        self._cache_items = cache_items
+class TrainingViews:
+    """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
+    training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
+    so resumes are exact. ``envmaps`` and ``roughness`` load GT only for the diagnostics that read it."""
 
-    @property
-    def camera_setup(self) -> CameraSetup:
-        """The data's orbit camera from the manifest: distance, elevation_deg, fov (radians; fov_deg),
-        azimuths_deg, resolution."""
-        try:
-            return CameraSetup.from_manifest(self.manifest)
-        except (KeyError, TypeError, ValueError) as e:
-            raise DataError(f"{self.layout.manifest}: no readable camera set-up ({e!r}); regenerate the dataset "
-                            "with `python -m datagen`") from e
+    def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False):
+        if ds.resolution != image_size:
+            raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
+                            f"{image_size}; pass --image-size {ds.resolution}")
+        n_samples, n_views = len(ds.samples), ds.num_views
+        imgs, w2c, fov = [], [], []
+        for obj, env in ds.samples:
+            for v in range(n_views):
+                imgs.append(ds.view_image(obj, env, v))
+                m, f = ds.camera(obj, env, v)
+                w2c.append(m)
+                fov.append(f)
+        self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
+        self.object_of_sample = torch.tensor([obj for obj, _ in ds.samples])
+        self.roughness_of_sample = (torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in ds.samples])
+                                    if roughness else None)
+        self.envmaps = {env: ds.envmap(env) for env in set(self.envmap_of_sample.tolist())} if envmaps else None
+        self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
+        self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
+        self.fov = torch.tensor(fov, dtype=torch.float32).view(n_samples, n_views)
+        self.resolution = image_size
+        self.num_samples, self.num_views = n_samples, n_views
 
-    # ------------------------------------------------------------------ validation
-    def sample_dir(self, obj: int, env: int) -> Path:
-        return self.layout.sample_dir(obj, env)
+    def _partners(self, samples: torch.Tensor, key: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """The batch's second half redrawn as partners of the first: for item k, a sample sharing its ``key``
+        (env map or object), the item itself where there is none. Returns (samples, partner index)."""
+        partner = torch.arange(len(samples))
+        half = len(samples) // 2
+        anchors = samples[:half]
+        same = key[anchors, None] == key[None, :]  # (half, samples)
+        same[torch.arange(half), anchors] = False  # another sample if there is one
+        alone = ~same.any(1)
+        same[alone, anchors[alone]] = True
+        pick = torch.rand(same.shape, generator=g) * same
+        samples = torch.cat([anchors, pick.argmax(1), samples[2 * half:]])
+        partner[:half], partner[half:2 * half] = torch.arange(half, 2 * half), torch.arange(half)
+        return samples, partner
 
-    def _validate_files(self) -> None:
-        missing = []
-        lay = self.layout
-        for obj, env in self.samples:
-            d = self.sample_dir(obj, env)
-            if not lay.sample_json(obj, env).is_file():
-                missing.append(f"{d.name} (unfinished: no sample.json)")
-                continue
-            for v in range(self.num_views):
-                for p in (lay.view_image(obj, env, v), lay.view_albedo(obj, env, v), lay.view_camera(obj, env, v)):
-                    if not p.is_file():
-                        missing.append(f"{d.name}/{p.name}")
-            for p in (lay.mesh_npz(obj), lay.envmap(env)):
-                if not p.is_file():
-                    missing.append(str(p.relative_to(self.root)))
-        if missing:
-            more = f" (and {len(missing) - 8} more)" if len(missing) > 8 else ""
-            raise DataError(f"{self.root}: dataset incomplete, missing {', '.join(missing[:8])}{more}; "
-                            "rerun the same `python -m datagen` command to finish it")
-        if not self.samples:
-            raise DataError(f"{self.root}: no samples in this split")
-
-    # ------------------------------------------------------------------ cached readers
-    def _cached(self, key, fn):
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        val = fn()
-        self._cache[key] = val
-        if len(self._cache) > self._cache_items:
-            self._cache.popitem(last=False)
-        return val
-
-    def _image(self, path: Path, channels: str) -> torch.Tensor:
-        def load():
-            if path.suffix == ".exr":
-                arr = read_exr(path, channels)
-            else:
-                arr = read_png(path)
-            r = self.resolution
-            if arr.shape != (r, r, len(channels)):
-                raise DataError(f"{path}: shape {arr.shape}, expected {(r, r, len(channels))} from the manifest")
-            return torch.from_numpy(np.ascontiguousarray(arr))
-        return self._cached(("img", str(path)), load)
-
-    def camera(self, obj: int, env: int, view: int) -> tuple[torch.Tensor, float]:
-        def load():
-            p = self.layout.view_camera(obj, env, view)
-            try:
-                c = json.loads(p.read_text())
-                m = torch.tensor(c["world_to_camera"], dtype=torch.float32)
-                fov = float(c["fov"])
-            except (OSError, KeyError, ValueError, TypeError) as e:
-                raise DataError(f"{p}: unreadable camera ({e})") from e
-            if m.shape != (4, 4) or not torch.isfinite(m).all():
-                raise DataError(f"{p}: world_to_camera must be a finite 4x4 matrix")
-            return m, fov
-        return self._cached(("cam", obj, env, view), load)
-
-    def view_image(self, obj: int, env: int, view: int) -> torch.Tensor:
-        """(S, S, 4) RGBA image of one view, linear or sRGB as this dataset was opened."""
-        return self._image(self.layout.view_image(obj, env, view, srgb=self.image == "srgb"), "RGBA")
-
-    def envmap(self, env: int) -> torch.Tensor:
-        return self._cached(("env", env), lambda: torch.from_numpy(
-            read_exr(self.layout.envmap(env), "RGB")))
-
-    def mesh(self, obj: int) -> Meshes:
-        """Ground-truth mesh (B = 1) with per-corner UVs (v up)."""
-        def load():
-            p = self.layout.mesh_npz(obj)
-            try:
-                with np.load(p) as m:
-                    arrays = {k: m[k] for k in ("verts", "faces", "uvs", "face_uvs")}
-            except (OSError, KeyError, ValueError) as e:
-                raise DataError(f"{p}: unreadable mesh ({e})") from e
-            try:
-                return Meshes(torch.from_numpy(arrays["verts"]).float(), torch.from_numpy(arrays["faces"]),
-                              torch.from_numpy(arrays["uvs"]).float(), torch.from_numpy(arrays["face_uvs"]))
-            except ValueError as e:
-                raise DataError(f"{p}: invalid mesh ({e})") from e
-        return self._cached(("mesh", obj), load)
-
-    def texture(self, obj: int) -> torch.Tensor:
-        """Ground-truth albedo texture (S, S, 3), linear (decoded from the sRGB PNG), top row first."""
-        return self._cached(("tex", obj), lambda: torch.from_numpy(
-            read_png(self.layout.texture(obj), linear=True)[..., :3]))
-
-    # ------------------------------------------------------------------ Dataset protocol
-    def __len__(self) -> int:
-        return len(self.samples) * self.num_views
-
-    def views_for(self, idx: int) -> list[int]:
-        v0 = idx % self.num_views
-        others = [v for v in range(self.num_views) if v != v0]
-        rng = np.random.default_rng([self.seed, idx])
-        return [v0] + [int(v) for v in rng.choice(others, self.views_per_item - 1, replace=False)]
-
-    def __getitem__(self, idx: int) -> dict:
-        if not 0 <= idx < len(self):
-            raise IndexError(idx)
-        obj, env = self.samples[idx // self.num_views]
-        views = self.views_for(idx)
-        imgs, albs, w2cs, fovs = [], [], [], []
-        for v in views:
-            imgs.append(self.view_image(obj, env, v))
-            albs.append(self._image(self.layout.view_albedo(obj, env, v), "RGB"))
-            m, fov = self.camera(obj, env, v)
-            w2cs.append(m)
-            fovs.append(fov)
-        image = torch.stack(imgs)
-        item = dict(image=image, mask=image[..., 3], albedo=torch.stack(albs), world_to_camera=torch.stack(w2cs),
-                    fov=torch.tensor(fovs, dtype=torch.float32), views=torch.tensor(views), object=obj, envmap_index=env,
-                    roughness=float(self.materials[obj]["roughness"]), metallic=float(self.materials[obj]["metallic"]))
-        if self.with_envmap:
-            item["envmap"] = self.envmap(env)
-        return item
-
-    def cameras(self, item: dict) -> Cameras:
-        return Cameras(item["world_to_camera"].reshape(-1, 4, 4), item["fov"].reshape(-1), self.resolution)
-
-
-def collate(items: list[dict]) -> dict:
-    """Stack items; adds 'cameras' (dibrpp Cameras of all B*V views, item-major)."""
-    out = {}
-    for k in items[0]:
-        vals = [it[k] for it in items]
-        out[k] = torch.stack(vals) if isinstance(vals[0], torch.Tensor) else torch.tensor(vals)
-    res = items[0]["image"].shape[-2]
-    out["cameras"] = Cameras(out["world_to_camera"].reshape(-1, 4, 4), out["fov"].reshape(-1), res)
-    return out
+    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1,
+              pairing: str = "") -> dict:
+        """The iteration's batch: ``image`` (B, 2, S, S, 4), cameras of both views, ``sample`` and ``partner``
+        (B,). ``pairing`` "shared-light": item k + size/2 is another object under item k's env map;
+        "swap-light": the same object under another env map; "": items are independent."""
+        g = torch.Generator().manual_seed(seed * 1_000_003 + iteration)
+        samples = torch.randint(self.num_samples, (size * world,), generator=g)[rank::world]
+        partner = torch.arange(len(samples))
+        if pairing:
+            key = {"shared-light": self.envmap_of_sample, "swap-light": self.object_of_sample}[pairing]
+            samples, partner = self._partners(samples, key, g)
+        v1 = torch.randint(self.num_views, (size * world,), generator=g)[rank::world]
+        v2 = (v1 + 1 + torch.randint(self.num_views - 1, (size * world,), generator=g)[rank::world]) % self.num_views
+        views = torch.stack([v1, v2], 1)
+        s = samples.unsqueeze(1).expand(-1, 2)
+        out = dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
+                   sample=samples, partner=partner)
+        if self.roughness_of_sample is not None:
+            out["roughness"] = self.roughness_of_sample[samples]
+        if self.envmaps is not None:
+            out["envmap"] = torch.stack([self.envmaps[e] for e in self.envmap_of_sample[samples].tolist()])
+        return out

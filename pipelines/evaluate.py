@@ -16,33 +16,26 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import torch
 from tqdm import tqdm
 
+from dibrpp.display import display_image, tonemap_envmap
+from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
 from dibrpp.io import DataError, atomic_path
 from dibrpp.lights import EnvMap
 
 from . import metrics
-from .dataset import MultiViewDataset, collate
-from .display import display_srgb, tonemap_envmap
-from .formatting import format_number, markdown_table, pyplot, save_figure, write_csv
+from datagen.reader import MultiViewDataset, collate
 from .model import encoder_input
 from .report import write_report
+from .runs import checkpoint_digest, find_runs, load_config, load_run, make_renderer
 from .tables import write_tables
-from .train import TrainConfig, load_checkpoint, make_renderer
 
 METRICS = ("image", "iou", "light", "texture", "chamfer")
 LIGHT_METRICS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
-
-
-def load_run(run: Path):
-    """(config, model, iteration) of a finished or interrupted run folder."""
-    config = TrainConfig(**json.loads((run / "config.json").read_text()))
-    state, model = load_checkpoint(run / "checkpoint.pt")
-    model.eval()
-    return config, model, state["iteration"]
 
 
 FIGURE_ROWS = 4
@@ -71,7 +64,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
     chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
                                         samples=4000) for k, gt in enumerate(gt_meshes)]
-    per_view = {"image": metrics.image_l1(display_srgb(out.rgb), display_srgb(rgba[..., :3]), gt_mask),
+    per_view = {"image": metrics.image_l1(display_image(out.rgb), display_image(rgba[..., :3]), gt_mask),
                 "iou": metrics.iou_loss(out.alpha, gt_mask),
                 "light": metrics.ncc_loss(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
@@ -90,30 +83,18 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     per_view.update({f"{k}_constant": v for k, v in constant.items()})
     rows = []
     if figure:
-        novel = [display_srgb(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
+        novel = [display_image(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
         # probes scaled like the metric (best scale against the GT), so what is compared is what is shown
         shown = metrics.ProbeScene(cams.world_to_camera, resolution=64)
         probe, probe_gt = (shown.render(lt)["metal"] for lt in (light, gt_light))
         scale = metrics.si_scale(probe, probe_gt).view(-1, 1, 1, 1)
         exposure = 0.5 / metrics.mean_colour(probe_gt).mean(-1).clamp_min(1e-8).view(-1, 1, 1, 1)
-        rows = [[display_srgb(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_srgb(out.rgb[k]), display_srgb(albedo[k]),
-                 display_srgb(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]),
-                 display_srgb(exposure[k] * scale[k] * probe[k, ..., :3]), display_srgb(exposure[k] * probe_gt[k, ..., :3]),
+        rows = [[display_image(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_image(out.rgb[k]), display_image(albedo[k]),
+                 display_image(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]),
+                 display_image(exposure[k] * scale[k] * probe[k, ..., :3]), display_image(exposure[k] * probe_gt[k, ..., :3]),
                  *(v[k] for v in novel)]
                 for k in range(len(items))]
     return per_view, rows
-
-
-VARIANT_FIELDS = ("texture", "light_colour", "visibility", "light_scale", "shared_light", "swap_light",
-                  "cross_view_only", "oracle_roughness", "w_albedo_consistency", "w_albedo_darker", "light_lr_scale",
-                  "flat_albedo_iterations", "light_supervision")  # model choices a run may change (ablations)
-
-
-def run_variant(config: TrainConfig) -> str:
-    """'' for the default model, else the non-default choices (e.g. 'light_colour=free'); the paper-style
-    tables hold default models only, all_runs.md lists every run."""
-    default = TrainConfig()
-    return ", ".join(f"{k}={getattr(config, k)}" for k in VARIANT_FIELDS if getattr(config, k) != getattr(default, k))
 
 
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
@@ -121,10 +102,10 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     """Mean metrics over the ``split`` views of the run's dataset (or ``dataset``; every ``view_stride``-th
     view of each sample; ``split="train"`` measures the train/test gap), and figure rows:
     {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
-    config, model, iteration = load_run(run)
+    loaded = load_run(run)
+    config, model, iteration = loaded.config, loaded.model, loaded.iteration
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
-    config.spp = eval_spp
-    renderer = make_renderer(config, seed=0)
+    renderer = make_renderer(config, seed=0, spp=eval_spp)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
     per_view = {}
     for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
@@ -142,7 +123,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
-                  view_stride=view_stride, variant=run_variant(config), split=split)
+                  view_stride=view_stride, variant=config.label(), split=split)
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
     worst = {k: views[int(per_view[k].argmax())] for k in (*METRICS, "probe_metal")}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
@@ -200,10 +181,6 @@ def write_direction_figures(results: list[dict], out: Path) -> list[Path]:
     return written
 
 
-def find_runs(root: Path) -> list[Path]:
-    return sorted(p.parent for p in root.rglob("checkpoint.pt") if (p.parent / "config.json").exists())
-
-
 def dataset_label(r: dict) -> str:
     """The evaluated dataset, and the one the run was trained on where that is another."""
     trained = r.get("trained_on", r["dataset"])
@@ -224,16 +201,53 @@ def write_table(results: list[dict], out: Path) -> str:
     return text
 
 
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def cached_result(path: Path, key: dict) -> dict | None:
+    """The stored result of an evaluation with exactly this ``key`` (checkpoint and config digest, stride, spp,
+    split, dataset), else None: a retrained run (same folder, other weights) is evaluated again."""
+    try:
+        before = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return before if isinstance(before, dict) and before.get("evaluated") == key else None
+
+
+def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
+    """Evaluate one run and write its result JSON and figures (the JSON last: it marks the run as done)."""
+    r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride, split=args.split)
+    r["spp"] = args.spp
+    r["evaluated"] = key
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rows, _ = figures["examples"]
+    seen = "unseen objects and env maps" if args.split == "test" else "objects and env maps it was trained on"
+    write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: {args.split} views ({seen})")
+    rows, labels = figures["failures"]
+    write_figure(rows, path.with_name(f"{run.name}_failures.png"),
+                 f"{r['dataset']} / {run.name}: failure cases, the worst {args.split} view by each metric", labels)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(r, indent=1))
+    return r
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--runs", default="runs")
-    ap.add_argument("--out", default="results/eval")
-    ap.add_argument("--spp", type=int, default=64, help="MC samples per pixel for the re-renderings")
-    ap.add_argument("--view-stride", type=int, default=3,
-                    help="evaluate every n-th view of each test sample (3: 8 of the 24 views, every 45 degrees)")
+    ap.add_argument("--runs", default="runs", help="folder of run folders (or one run folder) (default: runs)")
+    ap.add_argument("--out", default="results/eval", help="results folder (default: results/eval)")
+    ap.add_argument("--spp", type=positive_int, default=64, help="MC samples per pixel for the re-renderings (default: 64)")
+    ap.add_argument("--view-stride", type=positive_int, default=3,
+                    help="evaluate every n-th view of each test sample (default 3: 8 of the 24 views, every 45 degrees)")
     ap.add_argument("--split", choices=("test", "train"), default="test",
                     help="the views to evaluate on: test (unseen objects and maps) or train (the train/test gap; "
-                         "use another --out)")
+                         "use another --out) (default: test)")
     ap.add_argument("--dataset", metavar="DIR",
                     help="evaluate every run on this dataset instead of the one it was trained on (e.g. the same "
                          "objects under other env maps; use another --out)")
@@ -244,42 +258,40 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     out = Path(args.out)
-    results = []
-    for run in runs:
-        config = json.loads((run / "config.json").read_text())
-        path = out / Path(args.dataset or config["dataset"]).name / f"{run.name}.json"
-        iteration = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
-        before = json.loads(path.read_text()) if path.exists() else {}
-        if (before.get("iteration"), before.get("view_stride"), before.get("spp"), before.get("split", "test")) == \
-                (iteration, args.view_stride, args.spp, args.split):
-            r = before  # this checkpoint was evaluated before, the same way
-            r.setdefault("trained_on", Path(config["dataset"]).name)  # (results written before that key)
-        else:
-            try:
-                r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride,
-                                          split=args.split)
-                r["spp"] = args.spp
-            except DataError as e:
-                print(f"error: {run}: {e}", file=sys.stderr)
-                return 2
-            path.parent.mkdir(parents=True, exist_ok=True)
-            rows, _ = figures["examples"]
-            seen = "unseen objects and env maps" if args.split == "test" else "objects and env maps it was trained on"
-            write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: {args.split} views ({seen})")
-            rows, labels = figures["failures"]
-            write_figure(rows, path.with_name(f"{run.name}_failures.png"),
-                         f"{r['dataset']} / {run.name}: failure cases, the worst {args.split} view by each metric", labels)
-            with atomic_path(path) as tmp:
-                tmp.write_text(json.dumps(r, indent=1))
+    results, failed, t0, evaluated = [], [], time.perf_counter(), 0
+    for i, run in enumerate(runs, 1):
+        try:
+            config = load_config(run)
+            path = out / Path(args.dataset or config.dataset).name / f"{run.name}.json"
+            key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
+                       dataset=str(Path(args.dataset or config.dataset).resolve()))
+            r = cached_result(path, key)
+            if r is None:
+                eta = ""
+                if evaluated:
+                    left = len(runs) - i + 1  # at most: some may be cached
+                    eta = f", at most ~{(time.perf_counter() - t0) / evaluated * left / 60:.0f} min left"
+                print(f"run {i} of {len(runs)}: {run}{eta}", file=sys.stderr)
+                r = evaluate_and_write(run, path, key, args)
+                evaluated += 1
+        except DataError as e:
+            print(f"error: {run}: {e}", file=sys.stderr)
+            failed.append(run)
+            continue
         if r["iteration"] < r["trained_iterations"]:
             print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
         print(f"{run}: " + ", ".join(f"{k} {r.get(k, float('nan')):.4f}" for k in (*METRICS, *LIGHT_METRICS)))
         results.append(r)
-    print(write_table(results, out))
-    write_direction_figures(results, out)
-    print(write_tables(out))
-    report = write_report(out)
-    print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
+    if results:
+        print(write_table(results, out))
+        write_direction_figures(results, out)
+        print(write_tables(out))
+        report = write_report(out)
+        print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
+    if failed:
+        print(f"error: {len(failed)} of {len(runs)} runs could not be evaluated: {', '.join(map(str, failed))}",
+              file=sys.stderr)
+        return 2
     return 0
 
 

@@ -7,8 +7,14 @@ highlights (a sun reflected in a car is where the light's direction shows, and i
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 import torch.nn.functional as F
+
+from dibrpp.conventions import orbit_world_to_camera
+
+from .metrics import ProbeScene, si_rmse
 
 
 def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
@@ -17,7 +23,7 @@ def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
-def image_l1(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
+def foreground_l1(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
     """Mean L1 over foreground pixels; images (B, H, W, 3) in the same space, mask (B, H, W)."""
     m = target_mask.unsqueeze(-1)
     return ((pred_rgb - target_rgb * m).abs() * m).sum() / (3 * m.sum()).clamp_min(1)
@@ -41,3 +47,63 @@ def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int 
         for dim in (2, 3):
             total = total + (torch.diff(p, dim=dim) - torch.diff(t, dim=dim)).abs().mean()
     return total / scales
+
+
+# ----------------------------------------------------------------------------- terms of the named variants
+
+def albedo_consistency_loss(texture: torch.Tensor) -> torch.Tensor:
+    """L1 between the albedos predicted from an object's two views; texture (2B, Ht, Wt, 3), prediction 2i + j
+    of item i, view j. Albedo is view-independent; reflections copied into the look-up move between views."""
+    tex = texture.view(-1, 2, *texture.shape[1:])
+    return (tex[:, 0] - tex[:, 1]).abs().mean()
+
+
+def darker_view_albedo_loss(texture: torch.Tensor, facing: torch.Tensor | None) -> torch.Tensor:
+    """Mean amount by which each albedo texel exceeds the darker of its object's two views, over texels that
+    face both input cameras. texture (2B, Ht, Wt, 3) and facing (2B, Ht, Wt), prediction 2i + j of item i, view j.
+    The darker value is a fixed target, so only the brighter view's albedo is pulled (no collapse to a mean)."""
+    if facing is None:
+        raise ValueError("the darker-view albedo term needs the projected texture (--texture projected)")
+    tex = texture.unflatten(0, (-1, 2))
+    both = ((facing.unflatten(0, (-1, 2)) > 0).all(1)).unsqueeze(1).unsqueeze(-1)  # (B, 1, Ht, Wt, 1)
+    darker = tex.min(1, keepdim=True).values.detach()
+    excess = torch.where(tex > darker, tex - darker, 0.0) * both  # no gradient to the darker view itself
+    return excess.sum() / (both.sum() * 2 * 3).clamp_min(1)
+
+
+def albedo_detail(flat_iterations: int, iteration: int | None) -> float:
+    """How much of the texture's detail the renders use at ``iteration`` under the flat-albedo curriculum of
+    ``flat_iterations`` (None: the trained model, full detail)."""
+    n = flat_iterations
+    return 1.0 if n <= 0 or iteration is None else min(1.0, max(0.0, (iteration - n) / n))
+
+
+def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:
+    """(B, Ht, Wt, 3) texture -> each texture's mean plus ``detail`` times its variation about the mean."""
+    if detail >= 1.0:
+        return texture  # exactly, not mean + (texture - mean)
+    mean = texture.mean((1, 2), keepdim=True)
+    return mean + detail * (texture - mean)
+
+
+@functools.lru_cache(maxsize=1)
+def _probe_scene() -> ProbeScene:
+    """The probe spheres seen from four directions around the horizon, 20 degrees above it."""
+    return ProbeScene(orbit_world_to_camera(torch.tensor(3.0), 20.0, torch.tensor([0.0, 90.0, 180.0, 270.0])), resolution=16)
+
+
+def supervised_light_loss(light, envmaps: torch.Tensor, kind: str) -> torch.Tensor:
+    """The diagnostic light supervision of the 2B world-frame predicted lights (2i + j: item i, view j) by the
+    items' GT world-frame env maps (B, H, W, 3). "map": L1 of log(1 + radiance) over the map; "probe": si-RMSE
+    of the rough-metal probe sphere (the light metric itself) seen from four directions."""
+    if kind == "map":
+        env = envmaps.repeat_interleave(2, 0)
+        pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
+        return (torch.log1p(pred_env) - torch.log1p(env)).abs().mean()
+    if kind != "probe":
+        raise ValueError(f"light_supervision must be '', 'map' or 'probe', got {kind!r}")
+    scene = _probe_scene()
+    metal = lambda table, k: scene.render_table(table[k:k + 1].expand(len(scene.view), -1, -1, -1), ["metal"])["metal"]  # noqa: E731
+    gt = [metal(envmaps, i) for i in range(len(envmaps))]  # once per item: both its views share the map
+    pred_table = light.to_envmap(envmaps.shape[1], envmaps.shape[2]).image
+    return torch.stack([si_rmse(metal(pred_table, k), gt[k // 2]).mean() for k in range(len(pred_table))]).mean()

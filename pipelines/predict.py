@@ -23,12 +23,11 @@ import numpy as np
 import torch
 
 from dibrpp import Cameras
+from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .display import display_srgb
-from .evaluate import load_run
 from .model import encoder_input
-from .train import make_renderer, run_camera_setup
+from .runs import load_camera, load_run, make_renderer, run_folder
 
 
 def load_input(path, size: int, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
@@ -41,7 +40,7 @@ def load_input(path, size: int, background: tuple[float, float, float] | None, t
             raise DataError(f"{path}: no alpha channel; give the object's mask as alpha (RGBA PNG/EXR) or pass "
                             "--background R,G,B (sRGB 0-1) to cut out a flat background")
         bg = torch.tensor(background, dtype=img.dtype)
-        distance = (display_srgb(img) - bg).abs().amax(-1)
+        distance = (display_image(img) - bg).abs().amax(-1)
         img = torch.cat([img, (distance > tolerance).float().unsqueeze(-1)], -1)
     img = img[..., :4]
     if img[..., 3].max() <= 0:
@@ -60,8 +59,9 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64) -> dict:
-    config, model, _ = load_run(run)
-    setup = run_camera_setup(run)
+    loaded = load_run(run)
+    config, model = loaded.config, loaded.model
+    setup = load_camera(run)
     orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
     rgba = load_input(image, config.image_size, background, tolerance)
     cam = orbit(azimuth, config.image_size)
@@ -78,11 +78,10 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                     input=str(image), input_camera=dict(setup, azimuth_deg=azimuth))
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
-    config.spp = spp
     azimuths = azimuth + torch.arange(views) * (360.0 / views)
     cams = orbit(azimuths, 2 * config.image_size)
     repeated = pred.select([0] * views)
-    renders = make_renderer(config, seed=0)(repeated.meshes(), cams, repeated.material(),
+    renders = make_renderer(config, seed=0, spp=spp)(repeated.meshes(), cams, repeated.material(),
                                             repeated.light(cam.world_to_camera.expand(views, 4, 4))).image
     strip = torch.cat([torch.cat([renders[i, ..., :3] * renders[i, ..., 3:], renders[i, ..., 3:]], -1)
                        for i in range(views)], 1)
@@ -100,12 +99,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tolerance", type=float, default=0.05)
     ap.add_argument("--spp", type=int, default=64, help="MC samples per pixel of the novel views")
     args = ap.parse_args(argv)
-    run = Path(args.checkpoint)
-    if run.name == "checkpoint.pt":
-        run = run.parent
     try:
-        if not (run / "checkpoint.pt").is_file() or not (run / "config.json").is_file():
-            raise DataError(f"{run}: not a run folder (needs config.json and checkpoint.pt from pipelines.train)")
+        run = run_folder(args.checkpoint)
         background = None
         if args.background:
             try:

@@ -10,7 +10,7 @@ import json
 import statistics
 from pathlib import Path
 
-from .formatting import markdown_table, write_csv
+from dibrpp.formatting import markdown_table, write_csv
 
 COLUMNS = ("image", "iou", "light", "texture")  # the paper's columns: ours beside the paper's
 HEADER = ("Image", "2D IoU", "Light", "Tex.")

@@ -8,8 +8,9 @@ from pathlib import Path
 import torch
 
 from dibrpp import Renderer, icosphere, rasterize
+from dibrpp.display import display_image
 from dibrpp.lights import SGLight
-from studies.common import (ENV_EXPOSURE, display_image, fg_mean, fitted_sg, foreground_psnr, image_grid, metal,
+from studies.common import (ENV_EXPOSURE, fg_mean, fitted_sg, foreground_psnr, image_grid, metal,
                             orbit_views, write_study_table)
 
 

@@ -10,9 +10,9 @@ import torch
 import torch.nn.functional as F
 
 from dibrpp import Cameras, Material
-from dibrpp.conventions import equirect_directions, linear_to_srgb
+from dibrpp.conventions import equirect_directions
 from dibrpp.lights import EnvMap, SGLight, fit_sg_to_envmap
-from pipelines.formatting import markdown_table, pyplot, save_figure, write_csv
+from dibrpp.formatting import markdown_table, pyplot, save_figure, write_csv
 
 # ----------------------------------------------------------------------------- shared scene
 
@@ -61,11 +61,6 @@ def orbit_views(n: int, res: int, device, elevations=(30.0, -10.0), distance: fl
     az = torch.arange(n, dtype=torch.float32) * (360.0 / n)
     el = torch.tensor(elevations, dtype=torch.float32)[torch.arange(n) % len(elevations)]
     return Cameras.orbit(distance, el, az, 45.0, res, device=device)
-
-
-def display_image(linear: torch.Tensor, exposure: float = 1.0) -> torch.Tensor:
-    """A linear HDR image for a figure: times ``exposure``, sRGB-encoded, clipped to [0, 1]."""
-    return linear_to_srgb(exposure * linear).clamp(0, 1)
 
 
 ENV_EXPOSURE = 0.6  # display exposure for the env maps (their sky is ~1, the sun ~1000)

@@ -10,11 +10,11 @@ import torch
 import torch.nn.functional as F
 
 from dibrpp import Material, Renderer, icosphere, rasterize
-from dibrpp.conventions import linear_to_srgb
+from dibrpp.display import display_image
 from dibrpp.io import write_png
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
-from studies.common import (ENV_EXPOSURE, display_image, fg_mean, fitted_sg, image_grid, orbit_views,
+from studies.common import (ENV_EXPOSURE, fg_mean, fitted_sg, image_grid, orbit_views,
                             procedural_envmap, write_study_table)
 
 # Fig. E of the supplementary (SG shading): beta_gt -> two cases of (beta_ini, beta_opt, s_opt); s_gt = 0.5, s_ini = 0.2.
@@ -211,10 +211,10 @@ def run(out: Path, s: Sizes, device) -> str:
             write_png(out / f"de_{tag}_texture.png", r["tex"][0])
             write_png(out / f"de_{tag}_renders.png", torch.cat(list(img_opt[::max(1, s.views // 6)]), 1))
             line = grid.setdefault(beta_gt, [display_image(gt_all[0])] + [None] * 6)
-            line[1 + 3 * case:4 + 3 * case] = [display_image(r["light"].display(), ENV_EXPOSURE), linear_to_srgb(r["tex"][0]),
+            line[1 + 3 * case:4 + 3 * case] = [display_image(r["light"].display(), ENV_EXPOSURE), display_image(r["tex"][0]),
                                                display_image(img_opt[0])]
-        head = [[None, display_image(gt_l.display(), ENV_EXPOSURE), linear_to_srgb(gt_tex[0])] + [None] * 4,
-                [None, display_image(init_l.display(), ENV_EXPOSURE), linear_to_srgb(torch.full_like(gt_tex[0], 0.5)),
+        head = [[None, display_image(gt_l.display(), ENV_EXPOSURE), display_image(gt_tex[0])] + [None] * 4,
+                [None, display_image(init_l.display(), ENV_EXPOSURE), display_image(torch.full_like(gt_tex[0], 0.5)),
                  display_image(img_init[0])] + [None] * 3]
         image_grid(head + list(grid.values()), out / ("fig_e_sg.png" if shading == "sg" else "fig_d_mc.png"),
                    ["GT light, albedo", "init"] + [f"β_gt={b}" for b in grid],

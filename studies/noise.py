@@ -12,8 +12,9 @@ from dibrpp import icosphere, rasterize
 from dibrpp.lights import EnvMap
 from dibrpp.renderer import build_gbuffer
 from dibrpp.shading import MCShader
-from pipelines.formatting import pyplot, save_figure
-from studies.common import display_image, fg_mean, image_grid, metal, orbit_views, procedural_envmap, write_study_table
+from dibrpp.display import display_image
+from dibrpp.formatting import pyplot, save_figure
+from studies.common import fg_mean, image_grid, metal, orbit_views, procedural_envmap, write_study_table
 
 
 @dataclass

@@ -30,10 +30,10 @@ from pathlib import Path
 import torch
 
 from dibrpp import Cameras, Material, Renderer
-from dibrpp.conventions import linear_to_srgb
+from dibrpp.display import display_image
 from dibrpp.lights import EnvMap
 from dibrpp.io import DataError
-from pipelines.dataset import MultiViewDataset
+from datagen.reader import MultiViewDataset
 from studies.common import image_grid, write_study_table
 
 UP_NORMAL_Z = 0.7
@@ -123,8 +123,8 @@ def run_dataset(dataset: str, out: Path, s: Sizes) -> str:
                     totals[(name, part, "cycles")] += pair_sums(r_t, c_t, seen, select)
                 if figure is None:
                     pick = [0, n_views // 4]
-                    figure = [[linear_to_srgb(cycles[v, ..., :3]) for v in pick] +
-                              [linear_to_srgb(reflection[v]) for v in pick]]
+                    figure = [[display_image(cycles[v, ..., :3]) for v in pick] +
+                              [display_image(reflection[v]) for v in pick]]
     rows = []
     for name in setups:
         for part in parts:

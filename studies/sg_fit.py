@@ -8,8 +8,9 @@ from pathlib import Path
 import torch
 
 from dibrpp.conventions import equirect_solid_angles
-from pipelines.formatting import pyplot, save_figure
-from studies.common import ENV_EXPOSURE, display_image, fitted_sg, image_grid, procedural_envmap, write_study_table
+from dibrpp.display import display_image
+from dibrpp.formatting import pyplot, save_figure
+from studies.common import ENV_EXPOSURE, fitted_sg, image_grid, procedural_envmap, write_study_table
 
 
 @dataclass

@@ -224,7 +224,7 @@ def test_tiny_dataset_from_a_folder_of_one_exr_and_one_hdr(tmp_path):
         rgba = read_exr(lay.view_image(0, e, 0), "RGBA")
         assert rgba[..., 3].max() > 0.9 and rgba[..., :3].max() > 0  # the object is there, and lit
     # the loader reads it like any dataset
-    from pipelines.dataset import MultiViewDataset
+    from datagen.reader import MultiViewDataset
 
     ds = MultiViewDataset(out, split="all", views_per_item=1)
     assert len(ds) == 3 and ds[0]["envmap"].shape == (4, 8, 3)

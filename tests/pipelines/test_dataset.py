@@ -9,7 +9,7 @@ import torch
 
 from dibrpp import rasterize
 from dibrpp.io import DataError, write_exr
-from pipelines.dataset import MultiViewDataset, collate
+from datagen.reader import MultiViewDataset, collate
 
 
 def test_items_are_multiview_pairs_with_cameras_that_reproduce_the_mask(tiny_glossy):

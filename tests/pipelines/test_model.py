@@ -177,9 +177,9 @@ def test_image_and_silhouette_losses_on_hand_made_cases():
     mask[:, :2] = 1
     a, b = torch.zeros(1, 4, 4, 3), torch.zeros(1, 4, 4, 3)
     b[:, :2] = 0.5
-    assert losses.image_l1(a, b, mask).item() == pytest.approx(0.5)
+    assert losses.foreground_l1(a, b, mask).item() == pytest.approx(0.5)
     b[:, 2:] = 9.0  # background does not count
-    assert losses.image_l1(a, b, mask).item() == pytest.approx(0.5)
+    assert losses.foreground_l1(a, b, mask).item() == pytest.approx(0.5)
     assert losses.soft_iou_loss(mask, mask).item() == pytest.approx(0)
     half = mask.clone()
     half[:, 1] = 0

@@ -7,9 +7,18 @@ import sys
 import pytest
 import torch
 
-from pipelines.train import (TrainConfig, TrainingData, albedo_detail, darker_view_albedo_loss, make_model,
-                             make_optimizer, make_renderer, multiview_losses, train, with_albedo_detail)
+from datagen.reader import MultiViewDataset
 from dibrpp.mesh import uniform_laplacian
+from pipelines.config import ConfigError, TrainConfig
+from pipelines.dataset import TrainingViews
+from pipelines.losses import albedo_detail, darker_view_albedo_loss, with_albedo_detail
+from pipelines.objective import multiview_losses
+from pipelines.runs import make_model, make_optimizer, make_renderer
+from pipelines.train import train
+
+
+def TrainingData(root, image_size, **kw):  # noqa: N802 (the training split's tensors, as train() builds them)
+    return TrainingViews(MultiViewDataset(root, split="train", views_per_item=1, with_envmap=False), image_size, **kw)
 
 
 def config(data, out, **kw):
@@ -60,7 +69,7 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     model = make_model(cfg)
     data = TrainingData(cfg.dataset, cfg.image_size)
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
-    _, terms, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, shared_light=True), cfg, lap)
+    _, terms, snap = multiview_losses(model, make_renderer(cfg, 0), data.batch(0, 4, 0, pairing="shared-light"), cfg, lap)
     assert snap["render"].shape[0] == 8 and torch.equal(snap["src"], torch.arange(8))  # each prediction, once
     tex = snap["pred"].texture
     assert torch.allclose(terms["albedo_consistency"], (tex[0::2] - tex[1::2]).abs().mean())
@@ -95,8 +104,8 @@ def test_light_lr_scale_gives_the_light_head_its_own_rate_and_one_group_by_defau
 
 def test_flat_albedo_curriculum_renders_mean_albedos_then_fades_the_detail_in(tiny_glossy):
     cfg = config(tiny_glossy, "unused", lobes=4, flat_albedo_iterations=10)
-    assert [albedo_detail(cfg, i) for i in (0, 10, 15, 20, 30)] == [0.0, 0.0, 0.5, 1.0, 1.0]
-    assert albedo_detail(config(tiny_glossy, "unused"), 0) == 1.0  # off by default
+    assert [albedo_detail(cfg.flat_albedo_iterations, i) for i in (0, 10, 15, 20, 30)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert albedo_detail(config(tiny_glossy, "unused").flat_albedo_iterations, 0) == 1.0  # off by default
     tex = torch.rand(2, 4, 8, 3, generator=torch.Generator().manual_seed(0))
     flat = with_albedo_detail(tex, 0.0)
     assert torch.allclose(flat, tex.mean((1, 2), keepdim=True).expand_as(tex)) and torch.equal(with_albedo_detail(tex, 1.0), tex)
@@ -113,8 +122,6 @@ def test_flat_albedo_curriculum_renders_mean_albedos_then_fades_the_detail_in(ti
 def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(tiny_glossy, kind):
     """The diagnostic --light-supervision: the batch carries each item's GT env map, and with every other
     weight at 0 only the light head (and the encoder under it) learns."""
-    from pipelines.dataset import MultiViewDataset
-
     data = TrainingData(str(tiny_glossy), 32, envmaps=True)
     b = data.batch(0, 2, seed=0)
     ds = MultiViewDataset(str(tiny_glossy), views_per_item=1)
@@ -137,7 +144,7 @@ def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(t
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
     """The diagnostic --oracle-roughness: the batch carries object.json's roughness, the renders use it, and
     the roughness head then gets no gradient from the image."""
-    data = TrainingData(str(tiny_glossy), 32)
+    data = TrainingData(str(tiny_glossy), 32, roughness=True)
     train_objects = [o for o in json.loads((tiny_glossy / "manifest.json").read_text())["objects"] if o["split"] == "train"]
     roughness_of_sample = [o["material"]["roughness"] for o in train_objects for _ in o["envmaps"]]
     b = data.batch(0, 4, seed=0)
@@ -155,14 +162,14 @@ def test_shared_light_partners_are_other_objects_under_the_same_env_map(tiny_glo
     data = TrainingData(str(tiny_glossy), 32)
     env = data.envmap_of_sample
     for it in range(5):
-        b = data.batch(it, 4, seed=0, shared_light=True)
+        b = data.batch(it, 4, seed=0, pairing="shared-light")
         assert torch.equal(b["partner"], torch.tensor([2, 3, 0, 1]))
         for k in range(2):
             a, p = int(b["sample"][k]), int(b["sample"][k + 2])
             assert env[a] == env[p]
             others = [s for s in range(data.num_samples) if env[s] == env[a] and s != a]
             assert p != a or not others  # another object wherever the map lights one
-        again = data.batch(it, 4, seed=0, shared_light=True)
+        again = data.batch(it, 4, seed=0, pairing="shared-light")
         assert torch.equal(again["image"], b["image"])
 
 
@@ -171,13 +178,13 @@ def test_swap_light_renders_each_prediction_against_the_same_object_under_its_ot
     data = TrainingData(cfg.dataset, cfg.image_size)
     obj, env = data.object_of_sample, data.envmap_of_sample
     for it in range(5):
-        b = data.batch(it, 4, seed=0, swap_light=True)
+        b = data.batch(it, 4, seed=0, pairing="swap-light")
         assert torch.equal(b["partner"], torch.tensor([2, 3, 0, 1]))
         for k in range(2):
             a, p = int(b["sample"][k]), int(b["sample"][k + 2])
             assert obj[a] == obj[p] and env[a] != env[p]
-    with pytest.raises(ValueError, match="choose one"):
-        data.batch(0, 4, seed=0, shared_light=True, swap_light=True)
+    with pytest.raises(ConfigError, match="choose one"):
+        TrainConfig(shared_light=True, swap_light=True).validate()
     torch.manual_seed(0)
     model = make_model(cfg)
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
@@ -194,8 +201,8 @@ def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
     part = config(tiny_glossy, tmp_path / "part", shading="mc", iterations=4)
     train(part, progress=False)  # a run killed after its checkpoint at iteration 4
     train(config(tiny_glossy, tmp_path / "part", shading="mc"), resume=True, progress=False)
-    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=False)["model"]
-    b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)["model"]
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)["model"]
+    b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -217,12 +224,15 @@ def test_ddp_with_two_cpu_processes(tiny_glossy, tmp_path):
     assert (out / "checkpoint.pt").exists() and len((out / "log.csv").read_text().splitlines()) > 1
 
 
-def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tiny_glossy, tmp_path):
+def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tiny_glossy, tmp_path, monkeypatch):
     out = tmp_path / "nan"
     train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=4), progress=False)
     before = (out / "checkpoint.pt").read_bytes()
+    import pipelines.objective
+
+    monkeypatch.setattr(pipelines.objective, "gradient_loss", lambda *a: torch.tensor(float("nan")))
     with pytest.raises(FloatingPointError, match="total loss became nan"):
-        train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8, w_gradient=float("nan")), resume=True, progress=False)
+        train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8), resume=True, progress=False)
     assert (out / "checkpoint.pt").read_bytes() == before
 
 
@@ -241,5 +251,5 @@ def test_paper_presets_generate_and_train(tmp_path):
                         "--out", str(out), "--iterations", "2", "--batch-objects", "4", "--no-progress"],
                        capture_output=True, text=True, timeout=1200)
     assert r.returncode == 0, r.stderr[-2000:]
-    state = torch.load(out / "checkpoint.pt", weights_only=False)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
     assert state["iteration"] == 2 and state["model_config"]["image_size"] == 256

@@ -15,7 +15,7 @@ import numbers
 from pathlib import Path
 from typing import Iterable, Sequence
 
-from dibrpp.io import atomic_path
+from .io import atomic_path
 
 MISSING = "—"  # what a table shows where a value is missing
 ALIGN_RULES = {"l": "---", "r": "---:", "c": ":---:"}  # "l" is Markdown's default (left in every renderer)

@@ -1,0 +1,240 @@
+"""What a training run is asked to do: :class:`TrainConfig`, its presets, and the registry of named variants.
+
+Every field is settable from the command line (:func:`add_config_arguments` generates the flags from the
+dataclass) and from a JSON file; both are checked by name, type and range (:meth:`TrainConfig.from_dict`).
+The default path is the model of the docs (docs/training.md); ablations and diagnostics are **named
+variants** (:data:`VARIANTS`): a one-line description and the fields they set, selected with ``--variant``.
+The fields a variant sets stay in the config (and in each run's ``config.json``), so a run says what it was.
+"""
+from __future__ import annotations
+
+import argparse
+import difflib
+import typing
+from dataclasses import MISSING, asdict, dataclass, field, fields
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be trained: the message names the field and what to do."""
+
+
+def _opt(default, help: str, choices: tuple | None = None, minimum: float | None = None):  # noqa: A002
+    """A config field with its CLI help, its allowed values or its lower bound (checked by from_dict)."""
+    return field(default=default, metadata=dict(help=help, choices=choices, minimum=minimum))
+
+
+@dataclass
+class TrainConfig:
+    dataset: str = _opt("data/glossy", "dataset folder written by `python -m datagen`")
+    out: str = _opt("runs/run", "run folder (config, checkpoint, log, snapshots)")
+    shading: str = _opt("sg", "shading method: the paper's MC and SG, DIB-R's SH, SH shading with SG light",
+                        ("mc", "sg", "sh", "sh-sg"))
+    lobes: int = _opt(32, "SG lobes of the predicted light", minimum=1)
+    seed: int = _opt(0, "seed of the initial weights, the batches and the MC noise", minimum=0)
+    iterations: int = _opt(1500, "training iterations", minimum=1)
+    batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
+    lr: float = _opt(3e-4, "Adam learning rate", minimum=0.0)
+    spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
+    image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
+    w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
+    w_iou: float = _opt(1.0, "weight of the soft-silhouette IoU loss", minimum=0.0)
+    w_laplacian: float = _opt(0.02, "weight of the Laplacian smoothness of the shape", minimum=0.0)
+    w_gradient: float = _opt(0.5, "weight of the multi-scale image-gradient L1", minimum=0.0)
+    log_every: int = _opt(10, "iterations between log rows", minimum=1)
+    snapshot_every: int = _opt(250, "iterations between snapshot images", minimum=1)
+    checkpoint_every: int = _opt(100, "iterations between checkpoints", minimum=1)
+    predict_metallic: bool = _opt(False, "predict the metallic parameter (default: where the data has metals)")
+    texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
+                        ("projected", "global"))
+    light_colour: str = _opt("white", "white-balanced light, or light of any colour", ("white", "free"))
+    light_scale: str = _opt("softplus", "light sharpness and intensity linear or exponential in the head's output",
+                            ("softplus", "log"))
+    cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
+    shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
+    swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
+    oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
+    light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
+                                  ("", "map", "probe"))
+    w_albedo_consistency: float = _opt(0.0, "L1 between the albedos predicted from an object's two views",
+                                       minimum=0.0)
+    w_albedo_darker: float = _opt(0.0, "albedo pulled down to the darker of an object's two views", minimum=0.0)
+    light_lr_scale: float = _opt(1.0, "the light head's learning rate as a multiple of --lr", minimum=0.0)
+    flat_albedo_iterations: int = _opt(0, "curriculum: renders use the mean albedo for this many iterations",
+                                       minimum=0)
+    visibility: str = _opt("dibr", "silhouette gradient: soft silhouette, or antialiased edges (Sec. F.1)",
+                           ("dibr", "edge_aa"))
+    threads: int = _opt(0, "torch threads per process (0: torch's default)", minimum=0)
+    compile: bool = _opt(True, "G-buffer and shading through torch.compile (eager where it cannot)")
+    variant: str = _opt("", "the named variant this run trains ('' for the default model; see --list-variants)")
+
+    def validate(self) -> "TrainConfig":
+        """Refuse wrong types, unknown choices and out-of-range values, naming the field."""
+        hints = typing.get_type_hints(TrainConfig)
+        for f in fields(self):
+            value, kind = getattr(self, f.name), hints[f.name]
+            ok = isinstance(value, kind) and not (kind in (int, float) and isinstance(value, bool))
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                ok = True
+            if not ok:
+                raise ConfigError(f"{f.name} must be {kind.__name__}, got {value!r}")
+            choices, minimum = f.metadata.get("choices"), f.metadata.get("minimum")
+            if choices is not None and value not in choices:
+                raise ConfigError(f"{f.name} must be one of {', '.join(map(repr, choices))}; got {value!r}")
+            if minimum is not None and value < minimum or (f.name == "lr" and value <= 0):
+                raise ConfigError(f"{f.name} must be {'> 0' if f.name == 'lr' else f'>= {minimum}'}, got {value!r}")
+        if self.image_size % 16:
+            raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
+        if self.shared_light and self.swap_light:
+            raise ConfigError("shared_light and swap_light pair the batch differently; choose one")
+        if self.variant and self.variant not in VARIANTS:
+            raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
+        return self
+
+    @classmethod
+    def from_dict(cls, values: dict, preset: str = "cpu") -> "TrainConfig":
+        """The preset's config with ``values`` applied (a config file's JSON, CLI flags), checked by name, type
+        and range. A ``variant`` in ``values`` applies the variant's fields first, then the explicit ones."""
+        if not isinstance(values, dict):
+            raise ConfigError(f"a config must be a JSON object of TrainConfig fields, got {type(values).__name__}")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - names)
+        if unknown:
+            raise ConfigError(f"unknown config field {unknown[0]!r}; {_did_you_mean(unknown[0], names)}")
+        if preset not in PRESETS:
+            raise ConfigError(f"unknown preset {preset!r}; choose from {', '.join(sorted(PRESETS))}")
+        variant = values.get("variant", "")
+        if variant and variant not in VARIANTS:
+            raise ConfigError(f"unknown variant {variant!r}; {_did_you_mean(variant, VARIANTS)}")
+        chosen = {**PRESETS[preset], **(VARIANTS[variant].fields if variant else {}), **values}
+        return cls(**chosen).validate()
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "TrainConfig":
+        return cls.from_dict(overrides, preset=name)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def label(self) -> str:
+        """'' for the default model, else the variant's name (or, for a run configured by hand, its
+        non-default experiment fields, e.g. 'light_colour=free'). Tables hold default models only."""
+        if self.variant:
+            return self.variant
+        default = TrainConfig()
+        return ", ".join(f"{k}={getattr(self, k)}" for k in EXPERIMENT_FIELDS if getattr(self, k) != getattr(default, k))
+
+
+PRESETS = {
+    "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min
+    "smoke": dict(iterations=12, batch_objects=2, log_every=2, snapshot_every=6, checkpoint_every=4, spp=2),
+    "paper": dict(iterations=200_000, image_size=256, batch_objects=16, spp=64, snapshot_every=2000,
+                  checkpoint_every=1000, log_every=50),
+}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A named experiment: what it tests (one line), the fields it sets, where it is measured."""
+    description: str
+    fields: dict
+    runs: tuple[tuple[str, int], ...] = (("glossy", 0),)  # (dataset, seed) of each run `make train-variants` trains
+    kind: str = "ablation"  # ablation (a model choice) | diagnostic (uses GT; not a model) | paper (Tables D/E)
+
+
+VARIANTS: dict[str, Variant] = {
+    # the paper's ablations (Tables D and E)
+    "k4": Variant("SG light with 4 lobes (Table E)", {"lobes": 4}, kind="paper"),
+    "k8": Variant("SG light with 8 lobes (Table E)", {"lobes": 8}, kind="paper"),
+    "k16": Variant("SG light with 16 lobes (Table E)", {"lobes": 16}, kind="paper"),
+    # ablations of our model's choices
+    "free-light": Variant("light of any colour instead of white-balanced", {"light_colour": "free"}),
+    "global-texture": Variant("texture decoded from the global code instead of looked up in the input",
+                              {"texture": "global"}),
+    "edge-aa": Variant("nvdiffrast-style edge antialiasing instead of DIB-R's soft silhouette (Sec. F.1)",
+                       {"visibility": "edge_aa"}),
+    "log-light": Variant("light scales exponential in the head's output", {"light_scale": "log"}),
+    "shared-light": Variant("cross-view renders lit by another object's light under the same map (log scales)",
+                            {"light_scale": "log", "shared_light": True}),
+    "cross-view": Variant("image losses only on renders in the other view of each pair", {"cross_view_only": True}),
+    "albedo-consistency": Variant("L1 between the albedos of an object's two views, weight 1",
+                                  {"w_albedo_consistency": 1.0}),
+    "albedo-consistency-0.1": Variant("L1 between the albedos of an object's two views, weight 0.1",
+                                      {"w_albedo_consistency": 0.1}),
+    "albedo-darker": Variant("albedo pulled down to the darker of an object's two views, weight 1",
+                             {"w_albedo_darker": 1.0}),
+    "albedo-darker-0.1": Variant("albedo pulled down to the darker of an object's two views, weight 0.1",
+                                 {"w_albedo_darker": 0.1}),
+    "log-light-lr10": Variant("exponential light scales, light head at 10x the learning rate",
+                              {"light_scale": "log", "light_lr_scale": 10.0}),
+    "flat-albedo": Variant("curriculum: every render uses its mean albedo for 500 iterations, then detail fades in",
+                           {"flat_albedo_iterations": 500}),
+    "flat-albedo-1500": Variant("the flat-albedo curriculum over the whole run", {"flat_albedo_iterations": 1500},
+                                kind="diagnostic"),
+    "swap-light": Variant("cross-view renders of the same object under its other env map, lit by its light",
+                          {"swap_light": True}, runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
+    "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
+                                   {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0}),
+    # diagnostics: they read ground truth, so they measure a limit, not a model
+    "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
+                                    {"light_supervision": "map"}, kind="diagnostic"),
+    "light-supervised-probe": Variant("the light supervised by the GT map's rough-metal probe (the light metric)",
+                                      {"light_supervision": "probe"}, kind="diagnostic"),
+    "oracle-roughness": Variant("renders use each object's GT roughness (the roughness/light-blur ambiguity)",
+                                {"oracle_roughness": True}, kind="diagnostic"),
+}
+
+# the fields some variant sets: a run that changes them by hand is labelled with them
+EXPERIMENT_FIELDS = tuple(dict.fromkeys(k for v in VARIANTS.values() for k in v.fields if k != "lobes"))
+
+
+def _did_you_mean(name: str, known) -> str:
+    close = difflib.get_close_matches(name, list(known), n=1)
+    return f"did you mean {close[0]!r}?" if close else f"known: {', '.join(sorted(known))}"
+
+
+def _cli_type(kind):
+    """An argparse type that names the expected kind in its error."""
+    def parse(text: str):
+        try:
+            return kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {kind.__name__}, got {text!r}") from None
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """One flag per TrainConfig field (``--batch-objects``), with its type, choices and default in the help.
+    Unset flags stay None, so that a preset, a variant and a config file apply underneath them."""
+    hints = typing.get_type_hints(TrainConfig)
+    group = parser.add_argument_group("training configuration (every TrainConfig field)")
+    for f in fields(TrainConfig):
+        kind, meta = hints[f.name], f.metadata
+        default = f.default if f.default is not MISSING else None
+        help_text = f"{meta['help']} (default: {default!r})"
+        flag = "--" + f.name.replace("_", "-")
+        if f.name == "variant":
+            group.add_argument(flag, default=None, metavar="NAME", help=help_text)
+        elif kind is bool:
+            group.add_argument(flag, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+        else:
+            group.add_argument(flag, type=_cli_type(kind), choices=meta.get("choices"), default=None,
+                               metavar=None if meta.get("choices") else kind.__name__.upper(), help=help_text)
+
+
+def config_overrides(args: argparse.Namespace) -> dict:
+    """The TrainConfig fields set on the command line."""
+    return {f.name: getattr(args, f.name) for f in fields(TrainConfig) if getattr(args, f.name, None) is not None}
+
+
+def describe_variants() -> str:
+    width = max(map(len, VARIANTS))
+    return "\n".join(f"{name:<{width}}  {v.kind:<10}  {v.description}" for name, v in VARIANTS.items())
+
+
+def variant_runs(kinds: list[str]) -> str:
+    """'dataset variant seed' lines of every run of the variants of ``kinds`` (for make's loops)."""
+    unknown = set(kinds) - {v.kind for v in VARIANTS.values()}
+    if unknown:
+        raise ConfigError(f"unknown variant kind {sorted(unknown)[0]!r}; choose from ablation, diagnostic, paper")
+    return "\n".join(f"{d} {name} {s}" for name, v in VARIANTS.items() if v.kind in kinds for d, s in v.runs)

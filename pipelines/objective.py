@@ -1,0 +1,111 @@
+"""The training objective (eq. 8 and the regularisers), in two parts that a variant changes separately:
+
+- :func:`render_plan`: which prediction is rendered in which view, lit by whose light, against which image;
+- :func:`loss_terms`: which loss terms apply to those renders, with their weights.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from dibrpp import Cameras, Renderer
+from dibrpp.mesh import laplacian_smoothness
+
+from .config import TrainConfig
+from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
+                     hdr_srgb, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+from .model import encoder_input
+
+
+@dataclass
+class RenderPlan:
+    """Index tensors over the 2B predictions / views of a batch (2i + j: item i, view j): render ``src``'s
+    shape and material in view ``dst`` lit by ``lit_by``'s light, and compare with view ``dst``'s image."""
+    src: torch.Tensor
+    dst: torch.Tensor
+    lit_by: torch.Tensor
+
+
+def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) -> RenderPlan:
+    """Eq. 8: every prediction in both views of its pair, lit by the light predicted from the view it is rendered
+    in; the variants change who is rendered where (``cross_view_only``) or whose light and image the cross-view
+    renders use (``shared_light``, ``swap_light``)."""
+    b = batch_items
+    src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
+    dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
+    if config.cross_view_only:
+        # ... only in the other view: a texture that copies the input view's highlights and reflections gains
+        # nothing (they move between views), so they have to come from the light and the specular lobe
+        keep = src != dst
+        src, dst = src[keep], dst[keep]
+    lit_by = dst.clone()
+    cross = src != dst
+    partner_view = 2 * partner[dst // 2] + dst % 2  # the same view of the render's partner item
+    if config.shared_light:
+        # ... but across views with the light predicted from the partner: another object under the same
+        # env map. One world light must then light both objects, so it cannot carry one object's blur or
+        # tint: what differs between them has to go to their materials.
+        lit_by[cross] = partner_view[cross]
+    if config.swap_light:
+        # ... in the partner's view instead, against its image and with its light: the same object under
+        # another env map. Only the light differs between the two images, so whatever the albedo copied from
+        # one map's reflections is wrong under the other and has to come from the light
+        dst[cross] = partner_view[cross]
+        lit_by = dst.clone()
+    return RenderPlan(src, dst, lit_by)
+
+
+def batch_pairing(config: TrainConfig) -> str:
+    """How TrainingViews.batch pairs the items for this config's render plan."""
+    return "shared-light" if config.shared_light else "swap-light" if config.swap_light else ""
+
+
+def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
+               laplacian) -> tuple[dict, dict]:
+    """({term: value}, {term: weight}): eq. 8's image terms on the renders ``out`` against ``target``, the
+    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set."""
+    rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
+    terms = {
+        "image": foreground_l1(rgb, target_rgb, target[..., 3]),
+        "iou": soft_iou_loss(out.silhouette, target[..., 3]),
+        "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
+        "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
+    }
+    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
+    if config.light_supervision:
+        light = pred.light(views.world_to_camera)
+        terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
+        weights["light_supervision"] = 1.0
+    if config.w_albedo_consistency:
+        terms["albedo_consistency"] = albedo_consistency_loss(pred.texture)
+        weights["albedo_consistency"] = config.w_albedo_consistency
+    if config.w_albedo_darker:
+        terms["albedo_darker"] = darker_view_albedo_loss(pred.texture, pred.facing)
+        weights["albedo_darker"] = config.w_albedo_darker
+    return terms, weights
+
+
+def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
+                     iteration: int | None = None) -> tuple[torch.Tensor, dict, dict]:
+    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
+    drives the curricula (None: the trained model, full detail)."""
+    img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
+    b, s = img.shape[0], img.shape[2]
+    flat = img.reshape(b * 2, s, s, 4)
+    views = Cameras(batch["world_to_camera"].reshape(b * 2, 4, 4), batch["fov"].reshape(-1), s)
+    pred = model(encoder_input(flat), views)  # prediction from every view: index 2i + j
+    plan = render_plan(b, batch["partner"], config)
+    shape_pred = pred.select(plan.src)
+    if config.oracle_roughness:
+        shape_pred.roughness = batch["roughness"][plan.src // 2].to(shape_pred.roughness)
+    detail = albedo_detail(config.flat_albedo_iterations, iteration)
+    if detail < 1.0:
+        shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
+    light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
+    out = renderer(shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
+    target = flat[plan.dst]
+    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
+    total = sum(weights[k] * v for k, v in terms.items())
+    return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
+                              world_to_camera=views.world_to_camera)

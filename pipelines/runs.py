@@ -1,0 +1,186 @@
+"""The run folder, its one owner: what ``pipelines.train`` writes and evaluate / predict / benchmarks read.
+
+    runs/glossy/sg-seed0/
+      config.json      the TrainConfig the run was trained with
+      camera.json      the orbit camera of its training data (predict places the input camera with it)
+      checkpoint.pt    model, model configuration, optimiser, iteration, RNG (tensors and plain data only)
+      log.csv, loss.png, summary.json, snapshots/, tensorboard/
+
+Also the objects a run is built from (model, optimiser, renderer), so that every entry point builds them the
+same way without importing another entry point.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from dibrpp import RasterSettings, Renderer
+from dibrpp.io import DataError, atomic_path
+
+from .config import ConfigError, TrainConfig
+from .model import Encoder, ModelConfig
+
+CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
+LOG, SUMMARY, LOSS_PLOT, SNAPSHOTS, TENSORBOARD = "log.csv", "summary.json", "loss.png", "snapshots", "tensorboard"
+
+
+def is_run(folder: Path) -> bool:
+    return (Path(folder) / CHECKPOINT).is_file() and (Path(folder) / CONFIG).is_file()
+
+
+def find_runs(root: Path) -> list[Path]:
+    """Every run folder under ``root`` (``root`` itself if it is one)."""
+    return sorted(p.parent for p in Path(root).rglob(CHECKPOINT) if (p.parent / CONFIG).exists())
+
+
+def run_folder(path: Path) -> Path:
+    """A run folder from a path to it or to its checkpoint; an error naming what is missing otherwise."""
+    run = Path(path)
+    if run.name == CHECKPOINT:
+        run = run.parent
+    if not is_run(run):
+        raise DataError(f"{run}: not a run folder (needs {CONFIG} and {CHECKPOINT} from pipelines.train)")
+    return run
+
+
+# ----------------------------------------------------------------------------- config and camera
+
+def read_json(path: Path, what: str):
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as e:
+        raise DataError(f"{path}: cannot read the {what} ({e.strerror})") from e
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DataError(f"{path}: the {what} is not valid JSON ({e}); retrain the run or restore the file") from e
+
+
+def load_config(run: Path) -> TrainConfig:
+    """The TrainConfig saved with a run, checked like any config."""
+    path = Path(run) / CONFIG
+    try:
+        return TrainConfig.from_dict(read_json(path, "run's configuration"))
+    except ConfigError as e:
+        raise DataError(f"{path}: {e}") from e
+
+
+def save_config(run: Path, config: TrainConfig) -> None:
+    with atomic_path(Path(run) / CONFIG) as tmp:
+        tmp.write_text(json.dumps(config.to_dict(), indent=2))
+
+
+def save_camera(run: Path, camera_setup) -> None:
+    """The orbit camera of the training data (a datagen CameraSetup), for predict."""
+    setup = dict(distance=camera_setup.distance, elevation_deg=camera_setup.elevation_deg,
+                 fov_deg=camera_setup.fov_deg)
+    with atomic_path(Path(run) / CAMERA) as tmp:
+        tmp.write_text(json.dumps(setup, indent=2))
+
+
+def load_camera(run: Path) -> dict:
+    """The camera set-up of the data a run was trained on: distance, elevation_deg, fov_deg."""
+    path = Path(run) / CAMERA
+    if not path.is_file():
+        raise DataError(f"{path} missing: the run predates saved camera set-ups; retrain it")
+    setup = read_json(path, "camera set-up")
+    if not isinstance(setup, dict) or not all(isinstance(setup.get(k), (int, float))
+                                              for k in ("distance", "elevation_deg", "fov_deg")):
+        raise DataError(f"{path}: expected numbers distance, elevation_deg and fov_deg; retrain the run")
+    return setup
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+def save_checkpoint(path: Path, model: Encoder, opt, iteration: int, config: TrainConfig) -> None:
+    state = {"model": model.state_dict(), "model_config": model.config.to_dict(), "optimizer": opt.state_dict(),
+             "iteration": iteration, "config": config.to_dict(), "torch_rng": torch.get_rng_state()}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def read_checkpoint(path: Path) -> dict:
+    """A checkpoint's state, read as tensors and plain data only (a pickled object from someone else's run
+    cannot run code here)."""
+    try:
+        state = torch.load(path, weights_only=True)
+    except FileNotFoundError:
+        raise DataError(f"{path}: no checkpoint") from None
+    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, ValueError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise DataError(f"{path}: unreadable checkpoint ({first}); it may be truncated or not a dibrpp "
+                        "checkpoint: retrain the run, or resume it from an intact copy") from None
+    if not isinstance(state, dict) or not {"model", "iteration"} <= set(state):
+        raise DataError(f"{path}: not a dibrpp checkpoint (no model state and iteration)")
+    return state
+
+
+def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
+    """(state, model) of a checkpoint, the model built from the configuration saved with it."""
+    state = read_checkpoint(path)
+    if "model_config" not in state:
+        raise DataError(f"{path} was written by an older version of the model (no model configuration saved with "
+                        "it); retrain it, e.g. `make train-glossy`")
+    try:
+        model = Encoder(ModelConfig.from_dict(state["model_config"]))
+        model.load_state_dict(state["model"])
+    except (ValueError, RuntimeError, TypeError) as e:
+        raise DataError(f"{path}: {str(e).splitlines()[0]}") from e
+    return state, model
+
+
+def checkpoint_digest(run: Path) -> str:
+    """A short hash of what a run's evaluation depends on: its checkpoint's bytes and its config."""
+    h = hashlib.sha256()
+    for name in (CHECKPOINT, CONFIG):
+        with open(Path(run) / name, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()[:16]
+
+
+@dataclass
+class Run:
+    """A trained (or interrupted) run, loaded for inference."""
+    folder: Path
+    config: TrainConfig
+    model: Encoder
+    iteration: int
+
+
+def load_run(folder: Path) -> Run:
+    folder = run_folder(folder)
+    config = load_config(folder)
+    state, model = load_checkpoint(folder / CHECKPOINT)
+    model.eval()
+    return Run(folder, config, model, int(state["iteration"]))
+
+
+# ----------------------------------------------------------------------------- what a run is built from
+
+def make_model(config: TrainConfig) -> Encoder:
+    return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
+                               predict_metallic=config.predict_metallic, texture=config.texture,
+                               light_colour=config.light_colour, light_scale=config.light_scale))
+
+
+def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
+    if config.light_lr_scale == 1.0:
+        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the option had
+    light = set(model.light_head.parameters())
+    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in light]},
+                             {"params": list(light), "lr": config.lr * config.light_lr_scale}], lr=config.lr)
+
+
+def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None) -> Renderer:
+    """The renderer of a run (``spp`` overrides the training spp, e.g. for evaluation). ``training``: the losses
+    read the soft mask ("dibr") or the coverage ("edge_aa"), so with "dibr" the anti-aliased coverage (only the
+    image's alpha) is not computed."""
+    filter_width = 0.0 if training and config.visibility == "dibr" else RasterSettings.filter_width
+    settings = RasterSettings(cull_backfaces=True, visibility=config.visibility, filter_width=filter_width)
+    return Renderer(config.shading, spp=spp or config.spp, seed=seed, raster_settings=settings,
+                    compile=config.compile)
