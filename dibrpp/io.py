@@ -149,10 +149,110 @@ def write_png(path, image, srgb: bool = True) -> None:
 
 
 def read_image(path, linear: bool = True) -> np.ndarray:
-    """EXR (linear) or PNG/JPEG (sRGB, decoded to linear when ``linear``) by extension."""
+    """Any image as float32 (H, W, 3) colour or (H, W, 4) colour + alpha, at the file's own bit depth.
+
+    ``.exr``: linear as stored (RGB, RGBA, or greyscale Y / YA expanded to RGB). Anything else Pillow opens
+    (PNG, JPEG, TIFF, ...): 8- or 16-bit, greyscale, palette, with or without alpha, scaled to [0, 1] by its
+    own bit depth (a 16-bit greyscale PNG keeps its 65536 levels); colour sRGB-decoded to linear when
+    ``linear``, alpha as stored. An image too large for Pillow (a decompression bomb) is a :class:`DataError`.
+    """
     if str(path).lower().endswith(".exr"):
-        return read_exr(path, "RGBA" if "A" in {n.split(".")[-1] for n in read_exr_channels(path)} else "RGB")
-    return read_png(path, linear=linear)
+        return _read_exr_colour(path)
+    arr = _read_raster(_require_file(path))
+    if linear:
+        from .conventions import srgb_to_linear
+
+        rgb = srgb_to_linear(torch.from_numpy(np.ascontiguousarray(arr[..., :3]))).numpy()
+        arr = np.concatenate([rgb, arr[..., 3:]], -1)
+    return arr
+
+
+def _read_exr_colour(path) -> np.ndarray:
+    letters = {name.split(".")[-1] for name in read_exr_channels(path)}
+    alpha = "A" if "A" in letters else ""
+    if {"R", "G", "B"} <= letters:
+        return read_exr(path, "RGB" + alpha)
+    if "Y" in letters:
+        grey = read_exr(path, "Y" + alpha)
+        return np.concatenate([np.repeat(grey[..., :1], 3, -1), grey[..., 1:]], -1)
+    raise DataError(f"{path}: EXR has channels {sorted(letters)}; expected R, G, B (and A) or Y (and A)")
+
+
+def _read_raster(path: Path) -> np.ndarray:
+    """(H, W, 3 or 4) float32 in [0, 1] from a file Pillow opens, at the file's bit depth."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        wide = _read_png_16bit_colour(path)
+        if wide is not None:
+            return wide
+        with Image.open(path) as im:
+            return _pillow_pixels(im)
+    except Image.DecompressionBombError as e:
+        raise DataError(f"{path}: too large to read ({str(e).split(',')[0]}); downscale it first") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as e:
+        raise DataError(f"{path}: not a readable image ({e})") from e
+
+
+def _pillow_pixels(im) -> np.ndarray:
+    """Colour (+ alpha) of an opened Pillow image; 16- and 32-bit greyscale scaled by 65535."""
+    if im.mode.startswith("I"):  # I;16 (16-bit greyscale PNG / TIFF), I (32-bit integer)
+        grey = np.clip(np.asarray(im, dtype=np.float32) / 65535.0, 0.0, 1.0)
+        return np.repeat(grey[..., None], 3, -1)
+    if im.mode == "F":
+        return np.repeat(np.asarray(im, dtype=np.float32)[..., None], 3, -1)
+    has_alpha = "A" in im.mode or "a" in im.mode or "transparency" in im.info
+    return np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+
+
+# Pillow decodes 16-bit colour PNGs to 8 bits (the high byte). The same stream decoded with a raw mode of the
+# same pixel size gives the rest: "...;16L" unpacks the second byte of each (big-endian) sample, and an LA
+# PNG's 4 bytes per pixel read as 8-bit RGBA are (L high, L low, A high, A low).
+_PNG_16BIT_COLOUR = {"RGB;16B": ("RGB", "RGB;16L"), "RGBA;16B": ("RGBA", "RGBA;16L"), "LA;16B": ("RGBA", "RGBA")}
+
+
+def _read_png_16bit_colour(path: Path) -> np.ndarray | None:
+    """A 16-bit RGB / RGBA / LA PNG at full depth, as (H, W, 3 or 4) float32; None for any other image."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        rawmode = _single_tile_rawmode(im)
+        if im.format != "PNG" or rawmode not in _PNG_16BIT_COLOUR:
+            return None
+    mode, second = _PNG_16BIT_COLOUR[rawmode]
+    try:
+        if rawmode == "LA;16B":
+            both = _decode_as(path, mode, second).astype(np.uint16)
+            words = both[..., 0::2] * 256 + both[..., 1::2]  # (L, A)
+            words = np.concatenate([np.repeat(words[..., :1], 3, -1), words[..., 1:]], -1)
+        else:
+            with Image.open(path) as im:
+                high = np.asarray(im, dtype=np.uint16)
+            words = high * 256 + _decode_as(path, mode, second)
+    except (AttributeError, TypeError, KeyError) as e:  # a Pillow whose internals differ: 8 bits it is
+        import warnings
+
+        warnings.warn(f"{path}: read at 8 bits per channel (this Pillow cannot decode 16-bit colour: {e})")
+        return None
+    return words.astype(np.float32) / 65535.0
+
+
+def _single_tile_rawmode(im) -> str | None:
+    tiles = getattr(im, "tile", None) or []
+    if len(tiles) != 1:
+        return None
+    args = tiles[0].args
+    return args if isinstance(args, str) else (args[0] if args else None)
+
+
+def _decode_as(path: Path, mode: str, rawmode: str) -> np.ndarray:
+    """The PNG's pixel stream decoded into Pillow ``mode`` with ``rawmode`` (same bytes per pixel)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im._mode = mode
+        im.tile = [im.tile[0]._replace(args=rawmode)]
+        return np.asarray(im, dtype=np.uint16)
 
 
 def write_image(path, image) -> None:
