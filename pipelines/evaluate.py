@@ -30,6 +30,7 @@ from dibrpp.lights import EnvMap
 from . import metrics
 from datagen.reader import MultiViewDataset, collate
 from .model import encoder_input
+from .refine import refine_light
 from .report import write_report
 from .runs import checkpoint_digest, find_runs, load_config, load_run, make_renderer
 from .tables import write_tables
@@ -47,7 +48,7 @@ METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC
 
 
 @torch.no_grad()
-def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) -> tuple[dict, list]:
+def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, refine=None) -> tuple[dict, list]:
     """Per-view metrics (name -> (B,) tensor) of a batch of test views and, with ``figure``, one figure
     row per view (input, re-rendering, albedo and light ours vs GT, the rough-metal probe under both lights,
     novel views with the light fixed in the world)."""
@@ -55,6 +56,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     rgba = b["image"][:, 0]
     cams = b["cameras"]
     pred = model(encoder_input(rgba), cams)
+    if refine is not None:  # (steps, renderer): test-time refinement of the light against the input view
+        pred, _ = refine_light(pred, cams, rgba, refine[1], steps=refine[0])
     light = pred.light(cams.world_to_camera)
     out = renderer(pred.meshes(), cams, pred.material(), light)
     gt_mask, env = rgba[..., 3], b["envmap"]
@@ -64,7 +67,12 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
     gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
     chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
                                         samples=4000) for k, gt in enumerate(gt_meshes)]
-    per_view = {"image": metrics.image_l1(display_image(out.rgb), display_image(rgba[..., :3]), gt_mask),
+    normals = renderer.render_normals(pred.meshes(), cams)
+    gt_normals = [renderer.render_normals(gt, cams[[k]]) for k, gt in enumerate(gt_meshes)]
+    normal_deg, normal_within = metrics.normal_error_deg(
+        normals.rgb, normals.alpha, torch.cat([g.rgb for g in gt_normals]), torch.cat([g.alpha for g in gt_normals]))
+    per_view = {"normal_deg": normal_deg, "normal_within_10deg": normal_within,
+                "image": metrics.image_l1(display_image(out.rgb), display_image(rgba[..., :3]), gt_mask),
                 "iou": metrics.iou_loss(out.alpha, gt_mask),
                 "light": metrics.ncc_loss(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
@@ -98,24 +106,27 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False) 
 
 
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
-                 view_stride: int = 1, split: str = "test") -> tuple[dict, dict]:
+                 view_stride: int = 1, split: str = "test", refine_steps: int = 0) -> tuple[dict, dict]:
     """Mean metrics over the ``split`` views of the run's dataset (or ``dataset``; every ``view_stride``-th
-    view of each sample; ``split="train"`` measures the train/test gap), and figure rows:
+    view of each sample; ``split="train"`` measures the train/test gap; ``refine_steps``: the light refined at
+    test time against each input view, :mod:`pipelines.refine`), and figure rows:
     {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
     loaded = load_run(run)
     config, model, iteration = loaded.config, loaded.model, loaded.iteration
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
     renderer = make_renderer(config, seed=0, spp=eval_spp)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
-    per_view = {}
+    refine = (refine_steps, make_renderer(config, seed=0, training=True)) if refine_steps else None
+    per_view, t0 = {}, time.perf_counter()
     for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
-        values, _ = predict_views(model, renderer, ds, [ds[i] for i in views[start:start + batch]])
+        values, _ = predict_views(model, renderer, ds, [ds[i] for i in views[start:start + batch]], refine=refine)
         for k, v in values.items():
             per_view.setdefault(k, []).append(v)
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
     # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
     # flipped predictions of 180 degrees should not hide that most are right)
-    result = {k: float(v.nanmedian() if k.startswith("direction_deg") else v.mean()) for k, v in per_view.items()}
+    result = {k: float(v.nanmedian() if k.startswith(("direction_deg", "normal_deg")) else
+                       v.nanmean() if k.startswith("normal") else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure
         v = per_view[k]
@@ -123,11 +134,12 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
-                  view_stride=view_stride, variant=config.label(), split=split)
+                  view_stride=view_stride, variant=config.label(), split=split, refine_steps=refine_steps,
+                  seconds_per_view=(time.perf_counter() - t0) / len(views))
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
     worst = {k: views[int(per_view[k].argmax())] for k in (*METRICS, "probe_metal")}
-    _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True)
-    _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True)
+    _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True, refine=refine)
+    _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True, refine=refine)
     labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k].max()):.3g})" for k in worst]
     return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
 
@@ -189,26 +201,33 @@ def dataset_label(r: dict) -> str:
 
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "trained_on", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS]
+    cols = ["dataset", "trained_on", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS,
+            "normal_deg"]
     write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
     header = ["dataset", "method", "variant", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
-              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)"]
+              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)", "normal (°)"]
     rows = [[dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
-             *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS)]
+             *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS),
+             format_number(r.get("normal_deg"), ".3g")]
             for r in results]
-    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS))) + "\n"
+    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 1)) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
 
 
-def positive_int(text: str) -> int:
+def positive_int(text: str, minimum: int = 1) -> int:
+    kind = "a positive" if minimum == 1 else "a non-negative"
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+        raise argparse.ArgumentTypeError(f"expected {kind} integer, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"expected {kind} integer, got {value}")
     return value
+
+
+def non_negative_int(text: str) -> int:
+    return positive_int(text, minimum=0)
 
 
 def cached_result(path: Path, key: dict) -> dict | None:
@@ -223,7 +242,8 @@ def cached_result(path: Path, key: dict) -> dict | None:
 
 def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
     """Evaluate one run and write its result JSON and figures (the JSON last: it marks the run as done)."""
-    r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride, split=args.split)
+    r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride, split=args.split,
+                              refine_steps=args.refine_steps)
     r["spp"] = args.spp
     r["evaluated"] = key
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -251,6 +271,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", metavar="DIR",
                     help="evaluate every run on this dataset instead of the one it was trained on (e.g. the same "
                          "objects under other env maps; use another --out)")
+    ap.add_argument("--refine-steps", type=non_negative_int, default=0, metavar="N",
+                    help="refine each prediction's light at test time with N Adam steps against its input view "
+                         "(pipelines.refine; use another --out) (default: 0, off)")
     args = ap.parse_args(argv)
     runs = find_runs(Path(args.runs))
     if not runs:
@@ -264,6 +287,7 @@ def main(argv=None) -> int:
             config = load_config(run)
             path = out / Path(args.dataset or config.dataset).name / f"{run.name}.json"
             key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
+                       refine_steps=args.refine_steps,
                        dataset=str(Path(args.dataset or config.dataset).resolve()))
             r = cached_result(path, key)
             if r is None:

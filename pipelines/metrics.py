@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
 
@@ -173,6 +174,21 @@ def dominant_direction(env: torch.Tensor, height: int = 16, cone_deg: float = 20
     near = (grid[best] @ grid.T) >= math.cos(math.radians(cone_deg))  # (B, cells): a cone around the peak
     mean = torch.nn.functional.normalize(((cells * near).unsqueeze(-1) * grid).sum(1), dim=-1)
     return mean, cells.gather(1, best[:, None])[:, 0] / cells.sum(1).clamp_min(1e-30)
+
+
+def normal_error_deg(pred: torch.Tensor, pred_alpha: torch.Tensor, gt: torch.Tensor, gt_alpha: torch.Tensor,
+                     within: float = 10.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per view, the median angle (degrees) between predicted and GT unit normals (B, H, W, 3) over the pixels
+    both cover (alpha > 0.5), and the share of those pixels within ``within`` degrees; NaN where none."""
+    pred, gt = F.normalize(pred, dim=-1, eps=1e-12), F.normalize(gt, dim=-1, eps=1e-12)
+    angle = torch.rad2deg(torch.arccos((pred * gt).sum(-1).clamp(-1, 1)))
+    both = (pred_alpha > 0.5) & (gt_alpha > 0.5)
+    median, share = [], []
+    for a, m in zip(angle, both):
+        v = a[m]
+        median.append(v.median() if len(v) else a.new_tensor(float("nan")))
+        share.append((v <= within).float().mean() if len(v) else a.new_tensor(float("nan")))
+    return torch.stack(median), torch.stack(share)
 
 
 def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

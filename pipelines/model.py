@@ -27,19 +27,21 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dibrpp import conventions as conv
+from dibrpp import conventions
 from dibrpp.brdf import MIN_ALPHA, Material
 from dibrpp.camera import Cameras
 from dibrpp.lights import EnvMap, SGLight, SHLight
 from dibrpp.mesh import Meshes, icosphere, vertex_normals
 from dibrpp.sg import sg_integral
 
+from .light_probe import ProbeLightHead, camera_to_probe, probe_grid
+
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
-MODEL_VERSION = 3  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MODEL_VERSION = 4  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
 # fields added since an older version, with the value that reproduces the model that version trained
-MIGRATIONS = {2: {"light_scale": "softplus"}}
+MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light_head": "global"}}
 
 
 @dataclass
@@ -60,6 +62,9 @@ class ModelConfig:
     # exp(output), so a step changes them by a factor and a sharp, bright sun is a few steps away (an ablation:
     # it made one lobe dominant but did not improve the light metrics; README, "Light")
     light_scale: str = "softplus"
+    # global: the light regressed from the global code | probe: read from the input through the predicted
+    # geometry (pipelines.light_probe), in the probe frame
+    light_head: str = "global"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -77,6 +82,8 @@ class ModelConfig:
             raise ValueError(f"light_colour must be 'white' or 'free', got {self.light_colour!r}")
         if self.light_scale not in ("log", "softplus"):
             raise ValueError(f"light_scale must be 'log' or 'softplus', got {self.light_scale!r}")
+        if self.light_head not in ("global", "probe"):
+            raise ValueError(f"light_head must be 'global' or 'probe', got {self.light_head!r}")
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
@@ -98,7 +105,7 @@ class ModelConfig:
 
 def encoder_input(rgba: torch.Tensor) -> torch.Tensor:
     """What the encoder sees: (B, H, W, 4) linear RGBA -> (B, 4, H, W) sRGB-encoded colour on black, alpha."""
-    rgb = conv.linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]
+    rgb = conventions.linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]
     return torch.cat([rgb, rgba[..., 3:]], -1).permute(0, 3, 1, 2)
 
 
@@ -144,8 +151,12 @@ class Prediction:
 
     def light(self, world_to_camera: torch.Tensor):
         """The predicted light in the world: it was predicted in the frame of the input camera whose
-        world-to-camera transform is ``world_to_camera`` ((B, 4, 4) or (B, 3, 3))."""
+        world-to-camera transform is ``world_to_camera`` ((B, 4, 4) or (B, 3, 3)) (the probe head: in that
+        camera's probe frame, light_probe.CAMERA_TO_PROBE)."""
         p = self.light_params
+        frame = world_to_camera[:, :3, :3]
+        if self.config.light_head == "probe":
+            frame = camera_to_probe(frame.device, frame.dtype) @ frame
         kind = LIGHT_KINDS[self.config.shading]
         if kind == "sg":
             light = SGLight(p["axis"], p["sharpness"], p["amplitude"])
@@ -153,16 +164,36 @@ class Prediction:
             light = SHLight(p["coeffs"])
         else:
             light = EnvMap(p["image"])
-        return light.in_frame(world_to_camera[:, :3, :3])
+        return light.in_frame(frame)
+
+    def _replace(self, fn, light_params: dict | None = None) -> "Prediction":
+        """A prediction with ``fn`` applied to every tensor (and the light's parameters replaced, if given)."""
+        light = light_params if light_params is not None else {k: fn(v) for k, v in self.light_params.items()}
+        return Prediction(fn(self.verts), fn(self.texture), fn(self.roughness), fn(self.specular), fn(self.metallic),
+                          light, self.config, self.template, None if self.facing is None else fn(self.facing))
+
+    def detached(self) -> "Prediction":
+        return self._replace(torch.Tensor.detach)
+
+    def with_light(self, light_params: dict) -> "Prediction":
+        return self._replace(lambda t: t, light_params)
 
     def select(self, idx) -> "Prediction":
-        pick = lambda t: t[idx]  # noqa: E731
-        return Prediction(pick(self.verts), pick(self.texture), pick(self.roughness), pick(self.specular),
-                          pick(self.metallic), {k: pick(v) for k, v in self.light_params.items()}, self.config, self.template,
-                          None if self.facing is None else pick(self.facing))
+        return self._replace(lambda t: t[idx])
 
 
-def _conv(cin, cout):
+@dataclass
+class TexelView:
+    """The texels of the predicted surface seen from the input camera: world-frame unit normals and directions
+    to the camera (B, T, 3), how squarely each faces the camera (B, T; 0: away), and where it projects
+    (B, Ht, Wt, 2; grid_sample coordinates)."""
+    normals: torch.Tensor
+    to_camera: torch.Tensor
+    facing: torch.Tensor
+    grid: torch.Tensor
+
+
+def _down_block(cin, cout):
     return nn.Sequential(nn.Conv2d(cin, cout, 4, 2, 1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2, inplace=True))
 
 
@@ -178,7 +209,7 @@ def mirror_index(verts: torch.Tensor) -> torch.Tensor:
 def texel_barycentrics(template: Meshes, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """For each texel of an equirect (height, width) texture on the template sphere: the face its
     direction hits and the barycentrics, so texel positions follow any deformation of the template."""
-    d = conv.equirect_directions(height, width).reshape(-1, 3)  # texel centre -> direction (Blender's mapping)
+    d = conventions.equirect_directions(height, width).reshape(-1, 3)  # texel centre -> direction (Blender's mapping)
     tri = template.verts[0][template.faces]  # (F, 3, 3)
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     # ray o=0, dir d against every face (Moller-Trumbore), the nearest hit with barycentrics >= 0
@@ -205,8 +236,8 @@ class Encoder(nn.Module):
         config.validate()
         self.config = c = config
         w = c.width
-        self.stem = _conv(4, w)  # (w, S/2, S/2): kept for the texture's image look-up
-        self.backbone = nn.Sequential(_conv(w, 2 * w), _conv(2 * w, 4 * w), _conv(4 * w, 8 * w))
+        self.stem = _down_block(4, w)  # (w, S/2, S/2): kept for the texture's image look-up
+        self.backbone = nn.Sequential(_down_block(w, 2 * w), _down_block(2 * w, 4 * w), _down_block(4 * w, 8 * w))
         feat = 8 * w * (c.image_size // 16) ** 2
         self.fc = nn.Sequential(nn.Flatten(), nn.Linear(feat, 512), nn.LeakyReLU(0.2, inplace=True))
         template = icosphere(c.template_subdivisions, radius=1.0)
@@ -231,8 +262,13 @@ class Encoder(nn.Module):
                                      nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
         kind = LIGHT_KINDS[c.shading]
-        light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
-        self.light_head = nn.Linear(512, light_out)
+        if c.light_head == "probe":
+            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width)
+            self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
+                c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
+        else:
+            light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
+            self.light_head = nn.Linear(512, light_out)
         self._init_heads()
 
     def _init_heads(self):
@@ -242,6 +278,8 @@ class Encoder(nn.Module):
         with torch.no_grad():  # start at the template radius: the scale logit that gives scale 1
             lo, hi = c.scale_range
             self.shape_head.bias[-3:] = torch.logit(torch.tensor((1.0 - lo) / (hi - lo)))
+        if c.light_head == "probe":
+            return  # ProbeLightHead starts at the projected map
         nn.init.normal_(self.light_head.weight, std=1e-3)
         nn.init.zeros_(self.light_head.bias)
         kind = LIGHT_KINDS[c.shading]
@@ -284,22 +322,22 @@ class Encoder(nn.Module):
             offsets = 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
         return self.template_dirs * scale.unsqueeze(1) + offsets
 
-    def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor, verts: torch.Tensor,
-                 cameras: Cameras | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor,
+                 texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None]:
         """Linear albedo (B, Ht, Wt, 3) in (0, 1), and the texels' facing of the input camera (projected only)."""
         c = self.config
         b, th, tw = f.shape[0], c.texture_height // 8, c.texture_width // 8
         feats, facing = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))], None
         if c.texture == "projected":
-            if cameras is None:
-                raise ValueError("a projected texture needs the input cameras: call the encoder with cameras=...")
-            feats.append(self._projected(stem, images, verts.detach(), cameras))
+            feats.append(self._projected(stem, images, texels))
             facing = feats[-1][:, -1]
         return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1), facing
 
-    def _projected(self, stem, images, verts, cameras: Cameras) -> torch.Tensor:
-        """What the input view shows at each texel of the predicted surface: colour and alpha, stem
-        features, and how squarely the texel faces the camera (0 where it faces away)."""
+    def _texel_view(self, verts: torch.Tensor, cameras: Cameras | None) -> "TexelView":
+        """Where each texel of the predicted surface lies in the input view, and which way it faces."""
+        if cameras is None:
+            raise ValueError("a projected texture and the probe light head need the input cameras: call the encoder "
+                             "with cameras=...")
         c = self.config
         b = verts.shape[0]
         corners = self.faces[self.texel_face]  # (T, 3) vertex indices
@@ -310,25 +348,57 @@ class Encoder(nn.Module):
         to_cam = F.normalize(cameras.centers.to(pos).unsqueeze(1) - pos, dim=-1)
         facing = (nrm * to_cam).sum(-1).clamp_min(0)
         grid = torch.stack([xy[..., 0], -xy[..., 1]], -1).view(b, c.texture_height, c.texture_width, 2)
-        seen = torch.cat([F.grid_sample(images, grid, align_corners=False, padding_mode="zeros"),
-                          F.grid_sample(stem, grid, align_corners=False, padding_mode="zeros")], 1)
-        facing = facing.view(b, 1, c.texture_height, c.texture_width)
+        return TexelView(nrm, to_cam, facing, grid)
+
+    def _projected(self, stem, images, texels: "TexelView") -> torch.Tensor:
+        """What the input view shows at each texel of the predicted surface: colour and alpha, stem
+        features, and how squarely the texel faces the camera (0 where it faces away)."""
+        c = self.config
+        b = images.shape[0]
+        seen = torch.cat([F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros"),
+                          F.grid_sample(stem, texels.grid, align_corners=False, padding_mode="zeros")], 1)
+        facing = texels.facing.view(b, 1, c.texture_height, c.texture_width)
         return torch.cat([seen * (facing > 0), facing], 1)
+
+    def _probe_light(self, images: torch.Tensor, texels: "TexelView", cameras: Cameras, code: torch.Tensor) -> dict:
+        """The light read from the input through the predicted surface (pipelines.light_probe)."""
+        b = images.shape[0]
+        seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT  # (B, T, 4)
+        radiance = conventions.srgb_to_linear((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp(0, 1))
+        weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
+        grid = probe_grid(texels.normals, texels.to_camera, radiance, weight,
+                          cameras.world_to_camera.to(images).expand(b, 4, 4), self.config.env_height,
+                          self.config.env_width)
+        return self.light_head(grid, code)
 
     def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
         """images: (B, 4, S, S) from :func:`encoder_input`; cameras: the B input views (needed by the
-        projected texture)."""
+        projected texture and the probe light head)."""
         c = self.config
         stem = self.stem(images)
         f = self.fc(self.backbone(stem))
-        b = images.shape[0]
         verts = self._shape(self.shape_head(f))
-        texture, facing = self._texture(f, stem, images, verts, cameras)
+        needs_texels = c.texture == "projected" or c.light_head == "probe"
+        texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
+        texture, facing = self._texture(f, stem, images, texels)
         mat = self.material_head(f)
         lo, hi = c.roughness_range
         roughness = squash(mat[:, 0], lo, hi)
         specular = squash(mat[:, 1])
         metallic = squash(mat[:, 2]) if c.predict_metallic else torch.zeros_like(mat[:, 2])
+        kind = LIGHT_KINDS[c.shading]
+        if c.light_head == "probe":
+            light = self._probe_light(images, texels, cameras, f)
+        else:
+            light = self._light_from_code(f)
+        if c.light_colour == "white":
+            light = white_balance(light, kind, c.env_height)
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
+
+    def _light_from_code(self, f: torch.Tensor) -> dict:
+        """The light regressed from the global code (the paper's head)."""
+        c = self.config
+        b = f.shape[0]
         raw = self.light_head(f)
         kind = LIGHT_KINDS[c.shading]
         if kind == "sg":
@@ -340,6 +410,4 @@ class Encoder(nn.Module):
             light = {"coeffs": raw.view(b, 9, 3)}
         else:
             light = {"image": self._positive(raw.view(b, c.env_height, c.env_width, 3))}
-        if c.light_colour == "white":
-            light = white_balance(light, kind, c.env_height)
-        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
+        return light

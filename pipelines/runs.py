@@ -165,7 +165,8 @@ def load_run(folder: Path) -> Run:
 def make_model(config: TrainConfig) -> Encoder:
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
                                predict_metallic=config.predict_metallic, texture=config.texture,
-                               light_colour=config.light_colour, light_scale=config.light_scale))
+                               light_colour=config.light_colour, light_scale=config.light_scale,
+                               light_head=config.light_head))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:

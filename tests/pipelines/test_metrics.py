@@ -130,3 +130,22 @@ def test_probes_in_a_white_furnace():
     assert torch.allclose(r["mirror"][0][inside][:, :3], torch.tensor(1.0), atol=1e-5)
     metal = r["metal"][0][inside][:, :3]
     assert metal.max() <= 0.9 + 0.01 and metal.mean() > 0.75
+
+
+def test_normal_error_by_hand():
+    """Normals turned by 30 degrees on half of the shared pixels, equal on the rest; pixels only one side covers
+    do not count; a view without shared pixels has no error."""
+    gt = torch.zeros(2, 4, 4, 3)
+    gt[..., 2] = 1.0
+    pred = gt.clone()
+    turned = torch.tensor([math.sin(math.radians(30)), 0.0, math.cos(math.radians(30))])
+    pred[0, :, :3] = turned  # 12 of 16 pixels turned, but the last column is covered by the prediction only
+    alpha_gt = torch.ones(2, 4, 4)
+    alpha_gt[0, :, 3] = 0.0
+    alpha_gt[1] = 0.0
+    median, within = metrics.normal_error_deg(pred * 2.0, torch.ones(2, 4, 4), gt, alpha_gt)
+    assert median[0].item() == pytest.approx(30.0, abs=1e-3) and within[0].item() == 0.0
+    assert torch.isnan(median[1]) and torch.isnan(within[1])
+    pred[0, :2, :3] = gt[0, :2, :3]  # now 6 of the 12 shared pixels agree
+    median, within = metrics.normal_error_deg(pred, torch.ones(2, 4, 4), gt, alpha_gt)
+    assert within[0].item() == pytest.approx(0.5)

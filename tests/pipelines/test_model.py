@@ -98,7 +98,7 @@ def test_projected_texture_sees_the_input_colour():
     rgba[..., 0], rgba[..., 3] = 0.8, 1.0
     verts = model._shape(model.shape_head.bias.detach()[None])
     stem = model.stem(encoder_input(rgba))
-    seen = model._projected(stem, encoder_input(rgba), verts, cams)
+    seen = model._projected(stem, encoder_input(rgba), model._texel_view(verts, cams))
     facing = seen[:, -1] > 0
     assert 0.2 < facing.float().mean() < 0.6
     red = linear_to_srgb(torch.tensor(0.8))
@@ -186,3 +186,20 @@ def test_image_and_silhouette_losses_on_hand_made_cases():
     assert losses.soft_iou_loss(half, mask).item() == pytest.approx(0.5)
     x, y = torch.rand(1, 16, 16, 3), torch.zeros(1, 16, 16, 3)  # three scales need 16 px and more
     assert losses.gradient_loss(x, x).item() == 0 and losses.gradient_loss(x, y).item() > 0
+
+
+def test_probe_light_starts_at_the_mirror_cue_and_places_it_in_the_world():
+    """An untrained probe head (MC) returns the projected map itself: a mirror sphere seen from the front whose
+    upper half is bright shows, through its mirror directions, a bright sky above and a dark ground below, in the
+    world frame whatever the camera's azimuth."""
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=32, shading="mc", light_head="probe"))
+    for azimuth in (0.0, 120.0):
+        cams = Cameras.orbit(40.0, 0.0, azimuth, 40.0, 32)
+        rgba = torch.zeros(1, 32, 32, 4)
+        rgba[..., 3] = 1.0
+        rgba[:, :16, :, :3] = 0.9  # the upper half of the image (rows from the top)
+        rgba[:, 16:, :, :3] = 0.05
+        pred = model(encoder_input(rgba), cams)
+        env = pred.light(cams.world_to_camera).to_envmap(16, 32).image[0]
+        assert env[:5].mean() > 5 * env[-5:].mean(), azimuth  # the top rows of the world map (+Z) are the bright ones

@@ -1,0 +1,153 @@
+"""The object as a light probe: the light head reads the input through the predicted geometry.
+
+A glossy or metallic surface shows, at each pixel, the light arriving from the mirror direction of the view
+about its normal, r = 2(n.v)n - v (Rematas et al., DeepReflectanceMaps, CVPR 2016; Georgoulis et al., TPAMI
+2018); a diffuse one shows the light integrated about n. :func:`probe_grid` scatters what the input view shows
+at each texel of the predicted surface into an equirect grid at r (the mirror cue) and at n (the diffuse cue),
+with a coverage channel each. The pixel -> light-direction mapping is geometry, so the network does not have to
+learn it from a few dozen env maps; :class:`ProbeLightHead` is a small CNN on that grid (wrap-around in azimuth)
+joined with the global code, whose output starts as the projected map itself (its last layer is zero).
+
+The grid is in the **probe frame**: the input camera's frame turned so that the camera's up is the grid's pole
+(+Z) and its viewing direction the grid's centre (+X). The datasets' cameras look at the object from a fixed
+elevation, so sky and ground are rows of this grid, and a conv's translation along azimuth is a turn about up.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dibrpp import conventions as conventions
+
+# camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
+CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+LOG_EPS = 1e-3  # radiance floor of the grid's log (the input is sRGB in [0, 1] decoded to linear)
+BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
+
+
+def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
+    return torch.tensor(CAMERA_TO_PROBE, device=device, dtype=dtype)
+
+
+def _blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of (B, C, H, W) grids: wrap-around in azimuth, clamped at the poles."""
+    r = max(1, math.ceil(2 * sigma))
+    t = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    k = k / k.sum()
+    c = x.shape[1]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="circular"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def scatter_to_grid(dirs: torch.Tensor, values: torch.Tensor, weight: torch.Tensor, height: int,
+                    width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weighted mean of ``values`` (B, N, C) at directions ``dirs`` (B, N, 3) per equirect cell, blurred by
+    BLUR_CELLS: ((B, C, H, W) mean, (B, 1, H, W) the weight that reached each cell, relative to the mean)."""
+    b, n, c = values.shape
+    uv = conventions.direction_to_equirect_uv(dirs)
+    col = (uv[..., 0] * width).long().clamp(0, width - 1)
+    row = (uv[..., 1] * height).long().clamp(0, height - 1)
+    cell = (row * width + col) + torch.arange(b, device=dirs.device).unsqueeze(1) * (height * width)
+    sums = values.new_zeros(b * height * width, c + 1)
+    sums.index_add_(0, cell.reshape(-1), torch.cat([values * weight.unsqueeze(-1), weight.unsqueeze(-1)], -1).reshape(-1, c + 1))
+    sums = _blur(sums.view(b, height, width, c + 1).permute(0, 3, 1, 2), BLUR_CELLS)
+    total = sums[:, c:]
+    mean_weight = total.mean((2, 3), keepdim=True).clamp_min(1e-8)
+    return sums[:, :c] / total.clamp_min(1e-6 * mean_weight), total / mean_weight
+
+
+def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tensor, weight: torch.Tensor,
+               world_to_camera: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B, 8, H, W) probe-frame grid: mirror-cue radiance (3) and coverage (1), diffuse-cue radiance (3) and
+    coverage (1). normals, to_camera (B, N, 3) world-frame unit vectors of N surface points; seen (B, N, 3) the
+    linear radiance the input shows there; weight (B, N) how much each point counts (0: not seen)."""
+    rot = camera_to_probe(normals.device, normals.dtype) @ world_to_camera[:, :3, :3].to(normals.dtype)  # world -> probe
+    n_dot_v = (normals * to_camera).sum(-1, keepdim=True)
+    mirror = F.normalize(2 * n_dot_v * normals - to_camera, dim=-1, eps=1e-12)
+    to_probe = lambda d: d @ rot.mT  # noqa: E731 (row vectors)
+    mirror_mean, mirror_cover = scatter_to_grid(to_probe(mirror), seen, weight, height, width)
+    normal_mean, normal_cover = scatter_to_grid(to_probe(normals), seen, weight, height, width)
+    return torch.cat([mirror_mean, mirror_cover, normal_mean, normal_cover], 1)
+
+
+def fibonacci_axes(k: int) -> torch.Tensor:
+    """(k, 3) directions spread evenly over the sphere."""
+    i = torch.arange(k, dtype=torch.float32) + 0.5
+    z = 1 - 2 * i / k
+    phi = math.pi * (1 + 5 ** 0.5) * i
+    return torch.stack([torch.sqrt(1 - z * z) * torch.cos(phi), torch.sqrt(1 - z * z) * torch.sin(phi), z], -1)
+
+
+def sample_grid(grid: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Bilinear values of (B, C, H, W) equirect grids at directions (K, 3) -> (B, K, C)."""
+    uv = conventions.direction_to_equirect_uv(dirs)
+    xy = torch.stack([2 * uv[:, 0] - 1, 2 * uv[:, 1] - 1], -1).view(1, 1, -1, 2).expand(grid.shape[0], -1, -1, -1)
+    return F.grid_sample(grid, xy.to(grid), align_corners=False, padding_mode="border")[:, :, 0].permute(0, 2, 1)
+
+
+class ProbeLightHead(nn.Module):
+    """Light from the probe grid and the global code: an env grid (MC) or SG lobes, in the probe frame.
+
+    SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
+    the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
+    starting at the mirror cue's brightest region) with its own sharpness and intensity."""
+
+    def __init__(self, kind: str, lobes: int, height: int, width: int, code: int = 512, channels: int = 32):
+        super().__init__()
+        if kind not in ("env", "sg"):
+            raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
+        if kind == "sg" and lobes < 2:
+            raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
+        self.kind, self.lobes, self.height, self.width = kind, lobes, height, width
+        cin = 8 + 3  # the grid and each cell's direction
+        self.inp = nn.Conv2d(cin, channels, 3)
+        self.film = nn.Linear(code, 2 * channels)  # the global code scales and shifts the features
+        self.mid = nn.Conv2d(channels, channels, 3)
+        self.out = nn.Conv2d(channels, 4, 3)  # log-radiance residual (3), sun logit residual (1)
+        nn.init.zeros_(self.out.weight)
+        nn.init.zeros_(self.out.bias)
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
+        self.register_buffer("cell_dirs", conventions.equirect_directions(height, width).permute(2, 0, 1)[None])
+        self.log_gain = nn.Parameter(torch.zeros(()))
+        if kind == "sg":
+            self.register_buffer("axes", fibonacci_axes(lobes - 1))
+            self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
+            self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
+            self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
+            nn.init.zeros_(self.sun.weight)
+            with torch.no_grad():
+                self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
+
+    def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
+        return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
+
+    def forward(self, grid: torch.Tensor, code: torch.Tensor) -> dict:
+        b = grid.shape[0]
+        x = torch.cat([grid, self.cell_dirs.expand(b, -1, -1, -1)], 1)
+        h = F.leaky_relu(self._conv(self.inp, x), 0.2)
+        scale, shift = self.film(code).view(b, 2, -1, 1, 1).unbind(1)
+        h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)
+        res = self._conv(self.out, h)
+        log_map = torch.log(grid[:, :3] + LOG_EPS) + res[:, :3] + self.log_gain  # starts as the mirror cue
+        if self.kind == "env":
+            return {"image": torch.exp(log_map.clamp_max(12.0)).permute(0, 2, 3, 1)}
+        amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(12.0))  # (B, K-1, 3)
+        luminance = grid[:, :3].mean(1, keepdim=True)
+        logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
+        solid = conventions.equirect_solid_angles(self.height, self.width, grid.device, grid.dtype)
+        solid = solid.expand(-1, self.width).flatten()
+        p = torch.softmax(logits + solid.log(), -1)  # a distribution over cells
+        sun_axis = F.normalize(p @ self.cell_dirs.flatten(2)[0].T, dim=-1, eps=1e-6)
+        pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
+        sun = self.sun(torch.cat([pooled, code], -1))
+        sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(12.0))
+        k = self.lobes - 1
+        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1)], 1),
+                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k),
+                                        sun[:, :1].exp().clamp(0.5, 3000.0)], 1),
+                "amplitude": torch.cat([amplitude, sun_amplitude.unsqueeze(1)], 1)}

@@ -1,0 +1,65 @@
+"""Refinement at test time: a few dozen Adam steps on the predicted light and a global albedo gain per image,
+against the input view itself, with the predicted mesh and material held (used by evaluate and predict).
+
+The encoder's light is a guess from one forward pass; the renderer can check it against the very image it
+came from. Only the light (SG axes, sharpness and amplitudes; env-map texels; SH coefficients, in log space
+where they are positive) and one grey gain on the albedo move, so the shape and the paint stay the encoder's:
+what the refinement can change is where the light comes from and how sharp it is, which is what the image of
+a glossy object shows and a single regression misses.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from .losses import foreground_l1, hdr_srgb
+from .model import LIGHT_KINDS, Prediction, white_balance
+
+
+def _free(params: dict, kind: str) -> dict:
+    """The light's parameters as unconstrained leaves (logs of the positive ones)."""
+    if kind == "sg":
+        free = {"axis": params["axis"], "sharpness": params["sharpness"].log(), "amplitude": params["amplitude"].log()}
+    elif kind == "env":
+        free = {"image": params["image"].clamp_min(1e-6).log()}
+    else:
+        free = {"coeffs": params["coeffs"]}
+    return {k: v.detach().clone().requires_grad_(True) for k, v in free.items()}
+
+
+def _constrained(free: dict, kind: str, env_height: int) -> dict:
+    if kind == "sg":
+        light = {"axis": F.normalize(free["axis"], dim=-1, eps=1e-6), "sharpness": free["sharpness"].exp().clamp(0.5, 3000.0),
+                 "amplitude": free["amplitude"].clamp_max(12.0).exp()}
+    elif kind == "env":
+        light = {"image": free["image"].clamp_max(12.0).exp()}
+    else:
+        light = {"coeffs": free["coeffs"]}
+    return white_balance(light, kind, env_height)
+
+
+def refine_light(pred: Prediction, cameras, rgba: torch.Tensor, renderer, steps: int = 30,
+                 lr: float = 0.05) -> tuple[Prediction, torch.Tensor]:
+    """``pred`` with its light refined against the input views ``rgba`` (B, S, S, 4) linear, seen by
+    ``cameras``; returns (refined prediction, (B,) albedo gains). The prediction's tensors are not changed."""
+    kind = LIGHT_KINDS[pred.config.shading]
+    base = pred.detached()
+    meshes = base.meshes()
+    free = _free(pred.light_params, kind)
+    log_gain = torch.zeros(rgba.shape[0], requires_grad=True)
+    opt = torch.optim.Adam([*free.values(), log_gain], lr=lr)
+    target = hdr_srgb(rgba[..., :3])
+    with torch.enable_grad():
+        for _ in range(steps):
+            current = base.with_light(_constrained(free, kind, pred.config.env_height))
+            current.texture = (base.texture * log_gain.exp().view(-1, 1, 1, 1)).clamp(0, 1)
+            out = renderer(meshes, cameras, current.material(), current.light(cameras.world_to_camera))
+            loss = foreground_l1(hdr_srgb(out.rgb), target, rgba[..., 3])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    with torch.no_grad():
+        gain = log_gain.exp()
+        refined = base.with_light(_constrained(free, kind, pred.config.env_height))
+        refined.texture = (refined.texture * gain.view(-1, 1, 1, 1)).clamp(0, 1)
+    return refined, gain
