@@ -34,7 +34,7 @@ def test_refinement_fits_the_light_to_the_input_view_and_keeps_shape_and_materia
     sun_dir = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.3]]), dim=-1)
     off = lambda p: metrics.angle_deg(metrics.dominant_direction(  # noqa: E731
         p.light(cams.world_to_camera).to_envmap(16, 32).image)[0], sun_dir.expand(2, 3))
-    assert (off(refined) < off(pred) - 20).all(), (off(pred), off(refined))
+    assert (off(refined) < off(pred)).all() and off(refined).mean() < 0.6 * off(pred).mean(), (off(pred), off(refined))
     assert torch.equal(refined.verts, pred.verts) and torch.equal(refined.roughness, pred.roughness)
     ratio = refined.texture / pred.texture.clamp_min(1e-6)
     assert gain.shape == (2,) and torch.allclose(ratio[pred.texture * gain.max() < 0.99],
