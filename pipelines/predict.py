@@ -4,19 +4,21 @@
 
 Writes into --out: ``mesh.obj`` + ``mesh.mtl`` + ``texture.png`` (opens textured in Blender),
 ``envmap.exr`` (the predicted light as a world-frame equirect map), ``material.json`` and
-``novel_views.png`` (re-renderings from 4 views around the object, light fixed in the world).
+``novel_views.png`` (re-renderings from ``--views`` views around the object, light fixed in the world).
 
-The image needs an alpha channel (the object's mask), as the datasets have; an RGB image is accepted
-only with ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the
-documented foreground extraction for renders on a flat background). Any size is resized to the model's.
+The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits; or a linear EXR) needs an alpha
+channel (the object's mask), as the datasets have; an image without one is accepted only with
+``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
+foreground extraction for renders on a flat background). Any size from 8 x 8 pixels is padded to a square
+(transparent borders) and resized to the model's.
 The input camera is taken to be the training set-up (distance, elevation and field of view of the
 training dataset, stored with the run in ``camera.json``) at ``--azimuth`` degrees.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -26,27 +28,67 @@ from dibrpp import Cameras
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
+from .cli import Parser, finite_float, non_negative_float, positive_int, unit_rgb
 from .model import encoder_input
 from .runs import load_camera, load_run, make_renderer, run_folder
 
+MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
+
+
+def say(message: str) -> None:
+    """What predict is doing, on stderr (stdout is the material's JSON)."""
+    print(message, file=sys.stderr, flush=True)
+
 
 def load_input(path, size: int, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
-    """(size, size, 4) linear RGB + alpha from an image file, resized; see the module doc for RGB inputs."""
+    """(size, size, 4) linear RGB + alpha from an image file, padded to a square and resized; see the module
+    doc for RGB inputs."""
     img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
-    if img.dim() == 2:
-        img = img.unsqueeze(-1).expand(-1, -1, 3)
+    height, width = img.shape[:2]
+    if min(height, width) < MIN_SIDE:
+        raise DataError(f"{path}: {width} x {height} pixels is too small; give an image of at least "
+                        f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object (the model sees {size} x {size})")
     if img.shape[-1] == 3:
-        if background is None:
-            raise DataError(f"{path}: no alpha channel; give the object's mask as alpha (RGBA PNG/EXR) or pass "
-                            "--background R,G,B (sRGB 0-1) to cut out a flat background")
-        bg = torch.tensor(background, dtype=img.dtype)
-        distance = (display_image(img) - bg).abs().amax(-1)
-        img = torch.cat([img, (distance > tolerance).float().unsqueeze(-1)], -1)
-    img = img[..., :4]
+        img = torch.cat([img, foreground_mask(path, img, background, tolerance)], -1)
     if img[..., 3].max() <= 0:
         raise DataError(f"{path}: the alpha channel is empty (no object)")
-    resized = torch.nn.functional.interpolate(img.permute(2, 0, 1)[None], size=(size, size), mode="area")[0]
+    resized = torch.nn.functional.interpolate(pad_to_square(img).permute(2, 0, 1)[None], size=(size, size),
+                                              mode="area")[0]
     return resized.permute(1, 2, 0)
+
+
+def foreground_mask(path, rgb: torch.Tensor, background, tolerance: float) -> torch.Tensor:
+    """(H, W, 1): 1 where the pixel's sRGB colour is farther than ``tolerance`` from ``background``."""
+    if background is None:
+        raise DataError(f"{path}: no alpha channel; give the object's mask as alpha (RGBA PNG/EXR) or pass "
+                        "--background R,G,B (sRGB 0-1) to cut out a flat background")
+    distance = (display_image(rgb) - torch.tensor(background, dtype=rgb.dtype)).abs().amax(-1)
+    return (distance > tolerance).float().unsqueeze(-1)
+
+
+def pad_to_square(img: torch.Tensor) -> torch.Tensor:
+    """Transparent borders around the shorter side, so that resizing keeps the object's proportions."""
+    height, width = img.shape[:2]
+    side = max(height, width)
+    top, left = (side - height) // 2, (side - width) // 2
+    return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
+
+
+def check_out(out: Path) -> None:
+    """--out must be a folder (made if missing) that this process can write into: checked before predicting."""
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out}: is a file, not a folder; give a folder for the results (made if missing)")
+    folder = out
+    while not folder.exists():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise DataError(f"--out {out}: {folder} is a file, not a folder; choose another --out")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise DataError(f"--out {out}: cannot write into {folder} ({e.strerror}); choose another folder or "
+                        "change its permissions") from None
 
 
 def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Tensor) -> torch.Tensor:
@@ -59,11 +101,14 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64) -> dict:
+    check_out(out)
+    say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model
     setup = load_camera(run)
     orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
     rgba = load_input(image, config.image_size, background, tolerance)
+    say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, config.image_size)
     pred = model(encoder_input(rgba[None]), cam)
     light = pred.light(cam.world_to_camera)
@@ -78,6 +123,8 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                     input=str(image), input_camera=dict(setup, azimuth_deg=azimuth))
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
+    say(f"rendering {views} novel views at {2 * config.image_size} px ({config.shading}"
+        + (f", {spp} spp" if config.shading == "mc" else "") + ")")
     azimuths = azimuth + torch.arange(views) * (360.0 / views)
     cams = orbit(azimuths, 2 * config.image_size)
     repeated = pred.select([0] * views)
@@ -86,31 +133,39 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     strip = torch.cat([torch.cat([renders[i, ..., :3] * renders[i, ..., 3:], renders[i, ..., 3:]], -1)
                        for i in range(views)], 1)
     write_png(out / "novel_views.png", strip)
+    say(f"wrote {out}/: mesh.obj, mesh.mtl, texture.png, envmap.exr, material.json, novel_views.png")
     return material
 
 
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m pipelines.predict", description=__doc__)
+    ap.add_argument("--checkpoint", required=True, metavar="RUN",
+                    help="a run folder (config.json + checkpoint.pt), or its checkpoint.pt")
+    ap.add_argument("--image", required=True, metavar="FILE", help="the input image: PNG/JPEG/TIFF (sRGB) or EXR "
+                    "(linear), with the object's mask as alpha (or see --background)")
+    ap.add_argument("--out", required=True, metavar="DIR", help="folder for the results (made if missing)")
+    ap.add_argument("--azimuth", type=finite_float, default=0.0, metavar="DEG", help="azimuth of the input camera")
+    ap.add_argument("--background", type=unit_rgb, metavar="R,G,B",
+                    help="sRGB colour (0-1) of a flat background to cut out of an image without alpha")
+    ap.add_argument("--tolerance", type=non_negative_float, default=0.05, metavar="FLOAT",
+                    help="with --background: largest sRGB difference from it that is still background")
+    ap.add_argument("--views", type=positive_int, default=4, metavar="N", help="novel views rendered around the object")
+    ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel of the novel views")
+    return ap
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", required=True, help="a run folder (config.json + checkpoint.pt)")
-    ap.add_argument("--image", required=True)
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--azimuth", type=float, default=0.0, help="azimuth (deg) of the input camera")
-    ap.add_argument("--background", help="R,G,B (sRGB, 0-1) of a flat background to cut out of an RGB image")
-    ap.add_argument("--tolerance", type=float, default=0.05)
-    ap.add_argument("--spp", type=int, default=64, help="MC samples per pixel of the novel views")
-    args = ap.parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         run = run_folder(args.checkpoint)
-        background = None
-        if args.background:
-            try:
-                background = tuple(float(x) for x in args.background.split(","))
-                assert len(background) == 3
-            except (ValueError, AssertionError):
-                raise ValueError(f"--background {args.background!r}: expected R,G,B like 1,1,1") from None
-        material = predict(run, Path(args.image), Path(args.out), args.azimuth, background, args.tolerance, spp=args.spp)
+        material = predict(run, Path(args.image), Path(args.out), args.azimuth, args.background, args.tolerance,
+                           views=args.views, spp=args.spp)
     except (DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the disk filled up, or the folder went away while predicting
+        print(f"error: --out {args.out}: cannot write the results ({e}); free space or choose another folder",
+              file=sys.stderr)
         return 2
     print(json.dumps(material, indent=1))
     return 0
