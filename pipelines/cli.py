@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import tempfile
+from pathlib import Path
+
+from dibrpp.io import DataError
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -66,3 +70,22 @@ def unit_rgb(text: str) -> tuple[float, float, float]:
         raise argparse.ArgumentTypeError(f"expected R,G,B with each value in [0, 1] (e.g. 1,1,1), got {text!r}")
     return values
 
+
+
+def check_output_folder(flag: str, out: Path) -> None:
+    """``out`` is a folder (made later if missing) that this process can write into; a :class:`DataError` naming
+    ``flag`` and the folder otherwise. Cheap: call it before the long work, not after."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"{flag} {out}: is a file, not a folder; give a folder for the results (made if missing)")
+    folder = out
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise DataError(f"{flag} {out}: {folder} is a file, not a folder; choose another {flag}")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise DataError(f"{flag} {out}: cannot write into {folder} ({e.strerror}); choose another folder or "
+                        "change its permissions") from None

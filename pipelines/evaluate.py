@@ -29,6 +29,7 @@ from dibrpp.lights import EnvMap
 
 from . import metrics
 from datagen.reader import MultiViewDataset, collate
+from .cli import Parser, check_output_folder
 from .model import encoder_input
 from .refine import refine_light
 from .report import write_report
@@ -259,11 +260,11 @@ def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--runs", default="runs", help="folder of run folders (or one run folder) (default: runs)")
-    ap.add_argument("--out", default="results/eval", help="results folder (default: results/eval)")
-    ap.add_argument("--spp", type=positive_int, default=64, help="MC samples per pixel for the re-renderings (default: 64)")
-    ap.add_argument("--view-stride", type=positive_int, default=3,
+    ap = Parser(prog="python -m pipelines.evaluate", description=__doc__)
+    ap.add_argument("--runs", default="runs", metavar="DIR", help="folder of run folders (or one run folder) (default: runs)")
+    ap.add_argument("--out", default="results/eval", metavar="DIR", help="results folder (default: results/eval)")
+    ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel for the re-renderings (default: 64)")
+    ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
                     help="evaluate every n-th view of each test sample (default 3: 8 of the 24 views, every 45 degrees)")
     ap.add_argument("--split", choices=("test", "train"), default="test",
                     help="the views to evaluate on: test (unseen objects and maps) or train (the train/test gap; "
@@ -275,6 +276,11 @@ def main(argv=None) -> int:
                     help="refine each prediction's light at test time with N Adam steps against its input view "
                          "(pipelines.refine; use another --out) (default: 0, off)")
     args = ap.parse_args(argv)
+    try:
+        check_output_folder("--out", Path(args.out))
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     runs = find_runs(Path(args.runs))
     if not runs:
         print(f"error: no trained runs under {args.runs}; run `make train-glossy` (or another train-*) first",
@@ -299,8 +305,8 @@ def main(argv=None) -> int:
                 r = evaluate_and_write(run, path, key, args)
                 evaluated += 1
         except DataError as e:
-            print(f"error: {run}: {e}", file=sys.stderr)
-            failed.append(run)
+            print(f"run {i} of {len(runs)}: {run}: not evaluated: {e}", file=sys.stderr)
+            failed.append(f"{run} ({e})")
             continue
         if r["iteration"] < r["trained_iterations"]:
             print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
@@ -313,7 +319,7 @@ def main(argv=None) -> int:
         report = write_report(out)
         print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
     if failed:
-        print(f"error: {len(failed)} of {len(runs)} runs could not be evaluated: {', '.join(map(str, failed))}",
+        print(f"error: {len(failed)} of {len(runs)} runs could not be evaluated: {'; '.join(failed)}",
               file=sys.stderr)
         return 2
     return 0

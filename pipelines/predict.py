@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +27,7 @@ from dibrpp import Cameras
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .cli import Parser, finite_float, non_negative_float, positive_int, unit_rgb
+from .cli import Parser, check_output_folder, finite_float, non_negative_float, positive_int, unit_rgb
 from .model import encoder_input
 from .runs import load_camera, load_run, make_renderer, run_folder
 
@@ -74,23 +73,6 @@ def pad_to_square(img: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
 
 
-def check_out(out: Path) -> None:
-    """--out must be a folder (made if missing) that this process can write into: checked before predicting."""
-    if out.exists() and not out.is_dir():
-        raise DataError(f"--out {out}: is a file, not a folder; give a folder for the results (made if missing)")
-    folder = out
-    while not folder.exists():
-        folder = folder.parent
-    if not folder.is_dir():
-        raise DataError(f"--out {out}: {folder} is a file, not a folder; choose another --out")
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as e:
-        raise DataError(f"--out {out}: cannot write into {folder} ({e.strerror}); choose another folder or "
-                        "change its permissions") from None
-
-
 def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Tensor) -> torch.Tensor:
     """Vertex position per UV index (the template's seam splits vertices in UV space only)."""
     out = torch.zeros(int(face_uvs.max()) + 1, 3, dtype=verts.dtype)
@@ -101,7 +83,7 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64) -> dict:
-    check_out(out)
+    check_output_folder("--out", out)
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model
