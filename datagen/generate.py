@@ -50,11 +50,6 @@ from .records import write_json
 from .tasks import task_envmap, task_envmap_file, task_object, task_sample
 from .workers import completed
 
-# A run started before datagen was split into modules (its code in memory) spawns fresh workers, which
-# import this file from disk and look up the old names: its worker initialiser below, Config and the task_*
-# functions above. Drop this line once no such run can be going on.
-from .workers import init_worker as _init_worker  # noqa: F401
-
 
 def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1), recycle: int = 4,
              progress: bool = True, preview: bool = True) -> dict:

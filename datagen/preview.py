@@ -1,7 +1,6 @@
 """Contact sheet of a generated dataset: a few objects x views (over grey), their albedo, and env maps."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ from .layout import DatasetLayout
 
 def contact_sheet(out, max_objects: int = 6, max_views: int = 8, path=None) -> Path:
     layout = DatasetLayout(out)
-    manifest = json.loads(layout.manifest.read_text())
+    manifest = layout.read_manifest()
     samples = layout.finished_samples()
     if not samples:
         raise FileNotFoundError(f"{out}: no finished samples to preview")
