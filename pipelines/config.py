@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import math
 import typing
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
@@ -79,6 +80,8 @@ class TrainConfig:
                 ok = True
             if not ok:
                 raise ConfigError(f"{f.name} must be {kind.__name__}, got {value!r}")
+            if kind is float and not math.isfinite(value):
+                raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
             choices, minimum = f.metadata.get("choices"), f.metadata.get("minimum")
             if choices is not None and value not in choices:
                 raise ConfigError(f"{f.name} must be one of {', '.join(map(repr, choices))}; got {value!r}")

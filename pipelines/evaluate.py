@@ -278,6 +278,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         check_output_folder("--out", Path(args.out))
+        if args.dataset:  # a missing or broken --dataset would fail every run: said once, now
+            MultiViewDataset(args.dataset, split=args.split, views_per_item=1)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -42,15 +42,25 @@ def say(message: str) -> None:
 def load_input(path, size: int, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
     """(size, size, 4) linear RGB + alpha from an image file, padded to a square and resized; see the module
     doc for RGB inputs."""
+    return resize_input(read_input(path, background, tolerance), size)
+
+
+def read_input(path, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
+    """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it."""
     img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
     height, width = img.shape[:2]
     if min(height, width) < MIN_SIDE:
         raise DataError(f"{path}: {width} x {height} pixels is too small; give an image of at least "
-                        f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object (the model sees {size} x {size})")
+                        f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object")
     if img.shape[-1] == 3:
         img = torch.cat([img, foreground_mask(path, img, background, tolerance)], -1)
     if img[..., 3].max() <= 0:
         raise DataError(f"{path}: the alpha channel is empty (no object)")
+    return img
+
+
+def resize_input(img: torch.Tensor, size: int) -> torch.Tensor:
+    """(size, size, 4): ``img`` padded to a square (transparent) and resized by area averaging."""
     resized = torch.nn.functional.interpolate(pad_to_square(img).permute(2, 0, 1)[None], size=(size, size),
                                               mode="area")[0]
     return resized.permute(1, 2, 0)
@@ -84,12 +94,13 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64) -> dict:
     check_output_folder("--out", out)
+    image_rgba = read_input(image, background, tolerance)  # a bad image is refused before the model loads
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model
     setup = load_camera(run)
     orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
-    rgba = load_input(image, config.image_size, background, tolerance)
+    rgba = resize_input(image_rgba, config.image_size)
     say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, config.image_size)
     pred = model(encoder_input(rgba[None]), cam)

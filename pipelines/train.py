@@ -30,6 +30,7 @@ from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
 from . import runs
+from .cli import Parser, check_output_folder
 from .config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides,
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
@@ -249,7 +250,7 @@ def parse_config(args: argparse.Namespace) -> tuple[TrainConfig, MultiViewDatase
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = Parser(prog="python -m pipelines.train", description=__doc__)
     ap.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="size of the run (default: cpu)")
     ap.add_argument("--config", metavar="JSON", help="file of TrainConfig fields (after the preset and variant)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
@@ -259,11 +260,12 @@ def main(argv=None) -> int:
                     "variants of these comma-separated kinds (ablation, diagnostic, paper) and exit: make's loops")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
-    if args.list_variants or args.variant_runs:
-        print(describe_variants() if args.list_variants else variant_runs(args.variant_runs.split(",")))
-        return 0
     try:
+        if args.list_variants or args.variant_runs:
+            print(describe_variants() if args.list_variants else variant_runs(args.variant_runs.split(",")))
+            return 0
         config, ds = parse_config(args)
+        check_output_folder("--out", Path(config.out))
         train(config, resume=args.resume, progress=not args.no_progress, dataset=ds)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)
