@@ -19,7 +19,7 @@ STYLE = """body{font-family:sans-serif;margin:1em 2%}h1,h2,h3{margin:.8em 0 .3em
 .scroll{overflow-x:auto;max-width:100%}table{border-collapse:collapse;margin:.5em 0}
 td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}td:first-child,th:first-child{text-align:left}
 td:first-child{white-space:nowrap}
-img{max-width:100%;height:auto}.missing{color:#a00}
+img{max-width:100%;height:auto}.missing{color:#a00;white-space:nowrap}
 .run{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start;margin:1em 0}
 .run>.figure{flex:1 1 640px;min-width:0}.run>.curve{flex:0 1 480px;min-width:0}ul{margin-top:0}"""
 RUN_COLUMNS = (("dataset", "dataset"), ("run", "run"), ("shading", "method"), ("variant", "variant"), ("lobes", "K"),
