@@ -52,6 +52,8 @@ class TrainConfig:
                             ("softplus", "log"))
     light_head: str = _opt("global", "light regressed from the global code, or read from the input through the "
                            "predicted geometry (the object as a light probe)", ("global", "probe"))
+    probe_start: str = _opt("luminance", "the probe head's first light: the mirror cue's luminance or its colour",
+                            ("luminance", "colour"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
@@ -181,6 +183,8 @@ VARIANTS: dict[str, Variant] = {
                                    {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0}),
     "probe-light": Variant("the light read from the input through the predicted geometry (the object as a probe)",
                            {"light_head": "probe"}, runs=(("glossy", 0), ("metallic", 0))),
+    "probe-light-colour": Variant("the probe head starting from the mirror cue's colour instead of its luminance",
+                                  {"light_head": "probe", "probe_start": "colour"}, runs=(("glossy", 0), ("metallic", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

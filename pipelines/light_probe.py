@@ -96,13 +96,14 @@ class ProbeLightHead(nn.Module):
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region) with its own sharpness and intensity."""
 
-    def __init__(self, kind: str, lobes: int, height: int, width: int, code: int = 512, channels: int = 32):
+    def __init__(self, kind: str, lobes: int, height: int, width: int, code: int = 512, channels: int = 32,
+                 start: str = "luminance"):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
         if kind == "sg" and lobes < 2:
             raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
-        self.kind, self.lobes, self.height, self.width = kind, lobes, height, width
+        self.kind, self.lobes, self.height, self.width, self.start = kind, lobes, height, width, start
         cin = 8 + 3  # the grid and each cell's direction
         self.inp = nn.Conv2d(cin, channels, 3)
         self.film = nn.Linear(code, 2 * channels)  # the global code scales and shifts the features
@@ -133,7 +134,9 @@ class ProbeLightHead(nn.Module):
         scale, shift = self.film(code).view(b, 2, -1, 1, 1).unbind(1)
         h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)
         res = self._conv(self.out, h)
-        log_map = torch.log(grid[:, :3] + LOG_EPS) + res[:, :3] + self.log_gain  # starts as the mirror cue
+        # starts as the mirror cue; by default its luminance: on glossy paint the cue's colour is mostly the paint's
+        cue = grid[:, :3] if self.start == "colour" else grid[:, :3].mean(1, keepdim=True)
+        log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
         if self.kind == "env":
             return {"image": torch.exp(log_map.clamp_max(12.0)).permute(0, 2, 3, 1)}
         amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(12.0))  # (B, K-1, 3)

@@ -37,11 +37,12 @@ from dibrpp.sg import sg_integral
 from .light_probe import ProbeLightHead, camera_to_probe, probe_grid
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
-MODEL_VERSION = 4  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MODEL_VERSION = 5  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
 # fields added since an older version, with the value that reproduces the model that version trained
-MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light_head": "global"}}
+MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light_head": "global"},
+              4: {"probe_start": "colour"}}
 
 
 @dataclass
@@ -65,6 +66,8 @@ class ModelConfig:
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.light_probe), in the probe frame
     light_head: str = "global"
+    # the probe head's first light: the mirror cue's luminance (grey) or its colour (which carries the paint's)
+    probe_start: str = "luminance"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -82,6 +85,8 @@ class ModelConfig:
             raise ValueError(f"light_colour must be 'white' or 'free', got {self.light_colour!r}")
         if self.light_scale not in ("log", "softplus"):
             raise ValueError(f"light_scale must be 'log' or 'softplus', got {self.light_scale!r}")
+        if self.probe_start not in ("luminance", "colour"):
+            raise ValueError(f"probe_start must be 'luminance' or 'colour', got {self.probe_start!r}")
         if self.light_head not in ("global", "probe"):
             raise ValueError(f"light_head must be 'global' or 'probe', got {self.light_head!r}")
 
@@ -263,7 +268,7 @@ class Encoder(nn.Module):
         self.material_head = nn.Linear(512, 3)
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width)
+            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, start=c.probe_start)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:
