@@ -13,7 +13,6 @@ Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.table
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -29,7 +28,7 @@ from dibrpp.lights import EnvMap
 
 from . import metrics
 from datagen.reader import MultiViewDataset, collate
-from .cli import Parser, check_output_folder
+from .cli import Parser, check_output_folder, non_negative_int, positive_int
 from .model import encoder_input
 from .refine import refine_light
 from .report import write_report
@@ -214,21 +213,6 @@ def write_table(results: list[dict], out: Path) -> str:
     text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 1)) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
-
-
-def positive_int(text: str, minimum: int = 1) -> int:
-    kind = "a positive" if minimum == 1 else "a non-negative"
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected {kind} integer, got {text!r}") from None
-    if value < minimum:
-        raise argparse.ArgumentTypeError(f"expected {kind} integer, got {value}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    return positive_int(text, minimum=0)
 
 
 def cached_result(path: Path, key: dict) -> dict | None:

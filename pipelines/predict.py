@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +28,10 @@ from dibrpp import Cameras
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .cli import Parser, check_output_folder, finite_float, non_negative_float, positive_int, unit_rgb
+from .cli import (Parser, check_output_folder, finite_float, non_negative_float, non_negative_int, positive_int,
+                  unit_rgb)
 from .model import encoder_input
+from .refine import refine_light
 from .runs import load_camera, load_run, make_renderer, run_folder
 
 MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
@@ -92,7 +95,7 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
-            views: int = 4, spp: int = 64) -> dict:
+            views: int = 4, spp: int = 64, refine_steps: int = 0) -> dict:
     check_output_folder("--out", out)
     image_rgba = read_input(image, background, tolerance)  # a bad image is refused before the model loads
     say(f"loading {run}")
@@ -104,6 +107,10 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, config.image_size)
     pred = model(encoder_input(rgba[None]), cam)
+    gain, t0 = torch.ones(1), time.perf_counter()
+    if refine_steps:
+        say(f"refining the light: {refine_steps} steps against the input view")
+        pred, gain = refine_light(pred, cam, rgba[None], make_renderer(config, seed=0, training=True), refine_steps)
     light = pred.light(cam.world_to_camera)
     out.mkdir(parents=True, exist_ok=True)
     mesh = pred.meshes()
@@ -113,7 +120,8 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     write_exr(out / "envmap.exr", light.to_envmap(64, 128).image[0])
     material = dict(roughness=float(pred.roughness[0]), specular=float(pred.specular[0]),
                     metallic=float(pred.metallic[0]), shading=config.shading, checkpoint=str(run),
-                    input=str(image), input_camera=dict(setup, azimuth_deg=azimuth))
+                    input=str(image), input_camera=dict(setup, azimuth_deg=azimuth), refine_steps=refine_steps,
+                    albedo_gain=float(gain[0]), refine_seconds=round(time.perf_counter() - t0, 3) if refine_steps else 0.0)
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
     say(f"rendering {views} novel views at {2 * config.image_size} px ({config.shading}"
@@ -144,6 +152,8 @@ def build_parser() -> Parser:
                     help="with --background: largest sRGB difference from it that is still background")
     ap.add_argument("--views", type=positive_int, default=4, metavar="N", help="novel views rendered around the object")
     ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel of the novel views")
+    ap.add_argument("--refine-steps", type=non_negative_int, default=0, metavar="N",
+                    help="refine the predicted light with N Adam steps against the input view (pipelines.refine)")
     return ap
 
 
@@ -152,7 +162,7 @@ def main(argv=None) -> int:
     try:
         run = run_folder(args.checkpoint)
         material = predict(run, Path(args.image), Path(args.out), args.azimuth, args.background, args.tolerance,
-                           views=args.views, spp=args.spp)
+                           views=args.views, spp=args.spp, refine_steps=args.refine_steps)
     except (DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -68,7 +68,7 @@ CLIS = [
     Cli("python -m pipelines.predict", "pipelines.predict:main",
         ["--checkpoint", "{run}", "--image", "{image}", "--out", "{out}"], ("pipelines.predict:load_run",),
         paths=dict(checkpoint="dir-in", image="file-in", out="dir-out"), strings=("background",),
-        zero_ok=("azimuth", "tolerance"), negative_ok=("azimuth",)),
+        zero_ok=("azimuth", "tolerance", "refine_steps"), negative_ok=("azimuth",)),
     Cli("python -m datagen", "datagen.__main__:main", ["--dataset", "glossy", "--out", "{out}", "--quiet"],
         ("datagen.generate:_make_assets",), parser="datagen.__main__:build_parser",
         paths=dict(out="dir-out", envmaps="dir-in"), strings=("shard",),
