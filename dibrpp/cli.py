@@ -8,53 +8,41 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import tempfile
 from pathlib import Path
 
 import torch
+
+from .cli_args import Parser, check_writable, unit_rgb
 
 
 class CLIError(Exception):
     pass
 
 
-def _parse_rgb(text: str) -> tuple[float, float, float]:
-    try:
-        values = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(0 <= x <= 1 for x in values):
-        raise argparse.ArgumentTypeError(f"expected R,G,B with each value in [0, 1], got {text!r}")
-    return values
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # one line, not argparse's usage dump
-        self.exit(2, f"error: {message} (see --help)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="python -m dibrpp", description="DIB-R++ hybrid differentiable renderer")
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    parser = Parser(prog="python -m dibrpp", description="DIB-R++ hybrid differentiable renderer")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     r = sub.add_parser("render", help="render a mesh under an environment map")
     r.add_argument("--mesh", required=True, help="OBJ/PLY/GLB (anything trimesh reads)")
     colour = r.add_mutually_exclusive_group()
     colour.add_argument("--texture", help="sRGB PNG albedo texture (uses the mesh's UVs)")
-    colour.add_argument("--albedo", type=_parse_rgb, default=(0.8, 0.8, 0.8), help="linear base colour R,G,B")
+    colour.add_argument("--albedo", type=unit_rgb, default=(0.8, 0.8, 0.8), metavar="R,G,B",
+                        help="linear base colour (default: 0.8,0.8,0.8)")
     r.add_argument("--roughness", type=float, default=0.5, help="Principled Roughness in [0, 1]")
     r.add_argument("--metallic", type=float, default=0.0, help="Principled Metallic in [0, 1]")
     r.add_argument("--specular", type=float, default=0.5, help="Principled Specular IOR Level (0.5 => F0 = 0.04)")
     r.add_argument("--envmap", help="equirectangular HDR environment map (.exr); required unless --albedo-only")
-    r.add_argument("--shading", choices=["mc", "sg", "sh"], default="mc")
+    r.add_argument("--shading", choices=["mc", "sg", "sh"], default="mc",
+                   help="Monte-Carlo, Spherical Gaussians or spherical harmonics")
     r.add_argument("--spp", type=int, default=256, help="samples per pixel (mc)")
     r.add_argument("--sg-lobes", type=int, default=32, help="number of SG lobes fitted to the env map (sg)")
-    r.add_argument("--distance", type=float, default=3.0)
+    r.add_argument("--distance", type=float, default=3.0, help="orbit camera distance from the origin")
     r.add_argument("--elevation", type=float, default=0.0, help="degrees")
     r.add_argument("--azimuth", type=float, default=0.0, help="degrees")
     r.add_argument("--fov", type=float, default=40.0, help="full field of view in degrees (Blender's camera angle)")
     r.add_argument("--resolution", type=int, default=256, help="square image side in pixels")
     r.add_argument("--albedo-only", action="store_true", help="render the unlit base colour")
-    r.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    r.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="torch device of the render")
     r.add_argument("--seed", type=int, default=0, help="random seed of the MC sampler")
     r.add_argument("--out", required=True, help="output image: .exr (linear RGBA) or .png (sRGB preview)")
     sub.add_parser("build-kernels", help="build dibrpp's C++ kernels now (make setup does), not at the first render")
@@ -71,12 +59,7 @@ def _check_out(out: str) -> None:
     out_dir = Path(out).resolve().parent
     if not out_dir.is_dir():
         raise CLIError(f"--out {out}: folder {out_dir} does not exist")
-    try:
-        with tempfile.TemporaryFile(dir=out_dir):
-            pass
-    except OSError as e:
-        raise CLIError(f"--out {out}: cannot write into folder {out_dir} ({e.strerror}); choose another "
-                       "folder or change its permissions") from None
+    check_writable("--out", out, out_dir)
 
 
 def _check(args) -> None:
