@@ -4,40 +4,63 @@ from __future__ import annotations
 import argparse
 import sys
 
+from dibrpp.cli_args import Parser, non_negative_int, positive_int
+
+
+def preset_default(key: str) -> str:
+    """What a preset-driven flag defaults to: "default: from --preset: 32 with default (64 for diffuse); ..."."""
+    from .config import DATASET_DEFAULTS, PRESETS
+
+    parts = []
+    for name in sorted(PRESETS):
+        extra = [f"{v[key]} for {ds}" for ds, v in DATASET_DEFAULTS.items() if name == "default" and key in v]
+        parts.append(f"{PRESETS[name][key]} with {name}" + (f" ({', '.join(extra)})" if extra else ""))
+    return "default: from --preset: " + "; ".join(parts)
+
+
+def _preset_flags(p: argparse.ArgumentParser) -> None:
+    """The sizes a preset sets; given, they override it."""
+    sized = dict(num_objects="objects", num_envmaps="number of procedural env maps (without --envmaps)",
+                 envs_per_object="env maps each object is rendered under", resolution="image side in pixels",
+                 spp="Cycles samples per pixel", texture_size="side of the procedural textures in pixels",
+                 envmap_height="env map height (width is twice that)",
+                 grid="marching-cubes grid of the procedural shapes")
+    for key, text in sized.items():
+        p.add_argument("--" + key.replace("_", "-"), type=positive_int, metavar="N",
+                       help=f"{text} ({preset_default(key)})")
+    p.add_argument("--views", type=positive_int, metavar="N",
+                   help="views per object (default: 24; 12 front views for diffuse)")
+    p.add_argument("--max-bounces", type=non_negative_int, metavar="N",
+                   help=f"Cycles light bounces ({preset_default('max_bounces')})")
+
 
 def build_parser() -> argparse.ArgumentParser:
     from .config import DATASETS, PRESETS
 
-    p = argparse.ArgumentParser(prog="python -m datagen", description=(
+    p = Parser(prog="python -m datagen", description=(
         "Generate a procedural DIB-R++ dataset (metallic / glossy cars, diffuse heads) with Blender Cycles. "
         "Deterministic, resumable (rerun the same command), shardable."))
     p.add_argument("--dataset", required=True, choices=DATASETS)
-    p.add_argument("--out", required=True, help="output folder (created; reruns resume into it)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created; reruns resume into it)")
     p.add_argument("--preset", default="default", choices=sorted(PRESETS),
                    help="default: small, for 2 cores; paper: the paper's sizes (485 objects, 256 px)")
-    p.add_argument("--num-objects", type=int)
-    p.add_argument("--num-envmaps", type=int, help="number of procedural env maps (without --envmaps)")
     p.add_argument("--envmaps", metavar="DIR",
                    help="light with your own equirect HDRIs: every .exr / .hdr file of DIR (sorted by name; 2:1, "
                         "Blender's orientation: +Z up, +X at the centre), resampled to --envmap-height; "
                         "instead of the procedural maps")
-    p.add_argument("--procedural-envmaps", type=int, metavar="N",
+    p.add_argument("--procedural-envmaps", type=non_negative_int, metavar="N",
                    help="with --envmaps: add N procedural maps to the files (default 0); each kind is split 4:1")
-    p.add_argument("--envs-per-object", type=int)
-    p.add_argument("--views", type=int, help="views per object (default 24; 12 front views for diffuse)")
-    p.add_argument("--resolution", type=int, help="image side in pixels")
-    p.add_argument("--spp", type=int, help="Cycles samples per pixel")
-    p.add_argument("--texture-size", type=int)
-    p.add_argument("--envmap-height", type=int, help="env map height (width is twice that)")
-    p.add_argument("--max-bounces", type=int)
+    _preset_flags(p)
     p.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=None,
                    help="denoise the shaded renders with OpenImageDenoise (albedo + normal guides); default: on for "
                         "the diffuse set (64 spp), off for the others")
-    p.add_argument("--grid", type=int, help="marching-cubes grid of the procedural shapes")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2, help="worker processes (bpy is not thread-safe)")
-    p.add_argument("--recycle", type=int, default=4, help="tasks per worker process before it is replaced")
-    p.add_argument("--shard", default="0/1", help="i/n: generate only objects with index %% n == i")
+    p.add_argument("--seed", type=non_negative_int, default=0, metavar="N",
+                   help="seed of every random choice (shapes, materials, maps, splits, Cycles)")
+    p.add_argument("--workers", type=positive_int, default=2, metavar="N",
+                   help="worker processes (bpy is not thread-safe)")
+    p.add_argument("--recycle", type=positive_int, default=4, metavar="N",
+                   help="tasks per worker process before it is replaced")
+    p.add_argument("--shard", default="0/1", metavar="I/N", help="i/n: generate only objects with index %% n == i")
     p.add_argument("--no-preview", action="store_true")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -58,8 +81,6 @@ def main(argv=None) -> int:
                           grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
                           denoise=args.denoise)
         shard = parse_shard(args.shard)
-        if args.workers <= 0:
-            raise ValueError("--workers must be >= 1")
         stats = generate(cfg, args.out, workers=args.workers, shard=shard, recycle=args.recycle,
                          progress=not args.quiet, preview=not args.no_preview)
     except (ValueError, DataError) as e:
