@@ -17,34 +17,53 @@ test).
 """
 from __future__ import annotations
 
-import argparse
+import sys
 import time
 from pathlib import Path
 
 import torch
 
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_int
+from dibrpp.io import DataError
 from studies import ambiguity, joint_fit, noise, sg_fit
 
 STUDIES = dict(A=noise, B=sg_fit, C=ambiguity, DE=joint_fit)  # each: Sizes, QUICK and run(out, sizes, device)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m studies", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/studies")
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m studies", description=__doc__)
+    ap.add_argument("--out", default="results/studies", metavar="DIR", help="results folder (made if missing)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes (smoke test)")
     ap.add_argument("--only", default="A,B,C,DE", help="comma-separated subset of A, B, C, DE")
-    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
-    args = ap.parse_args(argv)
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device of the renders")
+    ap.add_argument("--threads", type=non_negative_int, default=0, metavar="N",
+                    help="torch CPU threads; 0: as many as torch chooses (default: 0)")
+    return ap
+
+
+def chosen_studies(only: str) -> list[str]:
+    """The keys of ``--only``, in its order; a DataError naming an unknown one."""
+    keys = [k.strip().upper() for k in only.split(",")]
+    unknown = [k for k in keys if k not in STUDIES]
+    if unknown:
+        raise DataError(f"--only {only}: unknown study {unknown[0]!r}; choose from {', '.join(STUDIES)}")
+    return keys
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        keys = chosen_studies(args.only)
+        check_output_folder("--out", Path(args.out))
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if args.threads:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     device = torch.device(args.device)
-    for key in (k.strip().upper() for k in args.only.split(",")):
-        if key not in STUDIES:
-            ap.error(f"unknown study {key!r}; choose from {', '.join(STUDIES)}")
+    for key in keys:
         study = STUDIES[key]
         s = study.QUICK if args.quick else study.Sizes()
         t0 = time.perf_counter()

@@ -17,7 +17,6 @@ Needs ``bpy`` (it renders with :mod:`datagen.cycles`); like every study it impor
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
@@ -25,6 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from dibrpp.cli_args import Parser, check_output_folder, positive_int
+from dibrpp.io import DataError
 
 VARIANTS = {  # name: RenderSettings fields on top of the dataset's own
     "32 spp (default)": dict(spp=32),
@@ -43,18 +45,32 @@ VARIANT_SEED = 7
 MEASURES = ("rmse", "rmse_corrected", "psnr", "seconds", "cpu_seconds", "rel")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m studies.noise_study", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--dataset", default="diffuse", choices=("metallic", "glossy", "diffuse"))
-    ap.add_argument("--objects", type=int, default=2)
-    ap.add_argument("--views", type=int, default=2, help="views per object (spread over the dataset's azimuths)")
-    ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--ref-spp", type=int, default=1024)
-    ap.add_argument("--threads", type=int, default=1)
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m studies.noise_study", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", default="diffuse", choices=("metallic", "glossy", "diffuse"),
+                    help="whose objects, materials, env maps and render settings")
+    ap.add_argument("--objects", type=positive_int, default=2, metavar="N", help="objects of the dataset")
+    ap.add_argument("--views", type=positive_int, default=2, metavar="N",
+                    help="views per object (spread over the dataset's azimuths)")
+    ap.add_argument("--resolution", type=positive_int, default=64, metavar="N", help="image side in pixels")
+    ap.add_argument("--ref-spp", type=positive_int, default=1024, metavar="N",
+                    help="samples per pixel of each of the reference's two renders")
+    ap.add_argument("--threads", type=positive_int, default=1, metavar="N", help="Cycles render threads")
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS), metavar="NAME",
-                    help="subset of: " + "; ".join(VARIANTS))
-    ap.add_argument("--out", required=True)
+                    help="subset of: " + "; ".join(VARIANTS) + " (default: all)")
+    ap.add_argument("--out", required=True, metavar="DIR", help="results folder (made if missing)")
     return ap
+
+
+def parse_args(argv=None):
+    """The arguments, --out checked too (a file or an unwritable folder is an error line before any render)."""
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        check_output_folder("--out", Path(args.out))
+    except DataError as e:
+        ap.error(str(e))
+    return args
 
 
 @dataclass
@@ -195,9 +211,9 @@ def table(summary: dict, ref_noise: list, args, objects: int, views: int, resolu
 def main(argv=None) -> int:
     from datagen.config import make_config
 
-    args = build_parser().parse_args(argv)
-    cfg = make_config(args.dataset, resolution=args.resolution)
+    args = parse_args(argv)
     out = Path(args.out)
+    cfg = make_config(args.dataset, resolution=args.resolution)
     objects = make_objects(cfg, args.objects, out / "assets", args.threads)
     views = pick_azimuths(cfg, args.views)
     rows = {name: {key: [] for key in MEASURES} for name in args.variants}

@@ -22,7 +22,6 @@ Writes ``reflections.md`` / ``.csv`` and ``reflections.png`` (one object: Cycles
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ from pathlib import Path
 import torch
 
 from dibrpp import Cameras, Material, Renderer
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, positive_int
 from dibrpp.display import display_image
 from dibrpp.lights import EnvMap
 from dibrpp.io import DataError
@@ -143,22 +143,25 @@ def run_dataset(dataset: str, out: Path, s: Sizes) -> str:
     return write_study_table(rows, out, "reflections", note)
 
 
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m studies.reflections", description=__doc__)
+    ap.add_argument("--dataset", default="data/glossy", metavar="DIR", help="dataset folder (python -m datagen)")
+    ap.add_argument("--out", default="results/studies", metavar="DIR", help="results folder (made if missing)")
+    ap.add_argument("--objects", type=positive_int, default=Sizes.objects, metavar="N", help="training objects")
+    ap.add_argument("--spp", type=positive_int, default=Sizes.spp, metavar="N", help="MC samples per pixel")
+    ap.add_argument("--threads", type=non_negative_int, default=0, metavar="N",
+                    help="torch CPU threads; 0: as many as torch chooses (default: 0)")
+    return ap
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m studies.reflections", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", default="data/glossy")
-    ap.add_argument("--out", default="results/studies")
-    ap.add_argument("--objects", type=int, default=Sizes.objects)
-    ap.add_argument("--spp", type=int, default=Sizes.spp)
-    ap.add_argument("--threads", type=int, default=0)
-    args = ap.parse_args(argv)
-    if args.objects < 1 or args.spp < 1:
-        ap.error("--objects and --spp must be at least 1")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    args = build_parser().parse_args(argv)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     try:
+        check_output_folder("--out", out)
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        out.mkdir(parents=True, exist_ok=True)
         print(run_dataset(args.dataset, out, Sizes(objects=args.objects, spp=args.spp)))
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
