@@ -54,7 +54,9 @@ from benchmarks.envmap_task import (INIT_RADIANCE, QUICK, SIZES, Task, sky_radia
 from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import conventions as conv
 from dibrpp import native
+from dibrpp.cli_args import Parser, check_output_folder, positive_float, positive_int
 from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
+from dibrpp.io import DataError
 
 PAPER = {"dibrpp": {"time_s": 5.4, "peak_mb": 1475}, "mitsuba": {"time_s": 9.8, "peak_mb": 3287}}  # Table B, GPU
 
@@ -288,39 +290,8 @@ def write_figure(arrays: dict, rows: dict, out: Path) -> None:
     save_figure(fig, out / "mitsuba.png")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/bench")
-    ap.add_argument("--quick", action="store_true", help="64x64 image, 32x16 env map, 20 iterations (smoke test)")
-    for field in SIZES:
-        default = getattr(Task, field)
-        ap.add_argument("--" + field.replace("_", "-"), type=type(default),
-                        help=f"default {default}, --quick {QUICK.get(field, default)}")
-    ap.add_argument("--threads", type=int, default=Task.threads, help="CPU threads of torch and Dr.Jit")
-    ap.add_argument("--device", default="cpu", help="dibrpp's device (cpu, cuda)")
-    ap.add_argument("--variant", default=Task.variant, help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
-    ap.add_argument("--dibrpp-gradient", choices=("decorrelated", "correlated"), default=Task.dibrpp_gradient,
-                    help="dibrpp's loss gradient: from a second independent render like Mitsuba's prb (default), "
-                         "or plain autodiff of one render (cheaper, biased towards low-variance maps)")
-    ap.add_argument("--runs", default=",".join(RUNS),
-                    help=f"comma-separated columns to run, of {', '.join(RUNS)} (default: all)")
-    ap.add_argument("--worker", choices=RUNS, help=argparse.SUPPRESS)
-    ap.add_argument("--stage", choices=("reference", "optimise"), help=argparse.SUPPRESS)
-    ap.add_argument("--scratch", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
-    if args.worker:
-        return worker_main(args)
-    runs = [r.strip() for r in args.runs.split(",") if r.strip()]
-    unknown = sorted(set(runs) - set(RUNS))
-    if unknown or "dibrpp" not in runs:
-        ap.error(f"--runs: {'unknown ' + ', '.join(unknown) if unknown else 'dibrpp is required'}; "
-                 f"choose from {', '.join(RUNS)}")
-
-    sizes = {**(QUICK if args.quick else {}), **{f: getattr(args, f) for f in SIZES if getattr(args, f) is not None}}
-    task = Task(threads=args.threads, device=args.device, variant=args.variant, dibrpp_gradient=args.dibrpp_gradient,
-                **sizes)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+def run_all(runs: list[str], task: Task) -> tuple[dict, dict]:
+    """(run -> table row, name -> array the workers saved) of every run, each in its own subprocesses."""
     rows, arrays = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         scratch = Path(tmp)
@@ -335,6 +306,61 @@ def main(argv=None) -> int:
             rows[run] = run_renderer(run, scratch)
         for f in scratch.glob("*.npy"):
             arrays[f.stem] = np.load(f)
+    return rows, arrays
+
+
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m benchmarks.mitsuba", description=__doc__)
+    ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
+    ap.add_argument("--quick", action="store_true", help="64x64 image, 32x16 env map, 20 iterations (smoke test)")
+    for field in SIZES:
+        default = getattr(Task, field)
+        real = isinstance(default, float)
+        ap.add_argument("--" + field.replace("_", "-"), type=positive_float if real else positive_int,
+                        metavar="X" if real else "N", help=f"default {default}, --quick {QUICK.get(field, default)}")
+    ap.add_argument("--threads", type=positive_int, default=Task.threads, metavar="N",
+                    help=f"CPU threads of torch and Dr.Jit (default: every CPU, {Task.threads} here)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="dibrpp's torch device")
+    ap.add_argument("--variant", default=Task.variant, help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
+    ap.add_argument("--dibrpp-gradient", choices=("decorrelated", "correlated"), default=Task.dibrpp_gradient,
+                    help="dibrpp's loss gradient: from a second independent render like Mitsuba's prb (default), "
+                         "or plain autodiff of one render (cheaper, biased towards low-variance maps)")
+    ap.add_argument("--runs", default=",".join(RUNS),
+                    help=f"comma-separated columns to run, of {', '.join(RUNS)} (default: all)")
+    ap.add_argument("--worker", choices=RUNS, help=argparse.SUPPRESS)
+    ap.add_argument("--stage", choices=("reference", "optimise"), help=argparse.SUPPRESS)
+    ap.add_argument("--scratch", help=argparse.SUPPRESS)
+    return ap
+
+
+def chosen_runs(args) -> list[str]:
+    """The columns of --runs (dibrpp among them), --out and --device checked: a DataError before any work."""
+    runs = [r.strip() for r in args.runs.split(",") if r.strip()]
+    unknown = sorted(set(runs) - set(RUNS))
+    if unknown or "dibrpp" not in runs:
+        raise DataError(f"--runs {args.runs}: {'unknown ' + ', '.join(unknown) if unknown else 'dibrpp is required'}; "
+                        f"choose from {', '.join(RUNS)}")
+    check_output_folder("--out", Path(args.out))
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise DataError("--device cuda: no CUDA device is available to torch here; use --device cpu")
+    return runs
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.worker:
+        return worker_main(args)
+    try:
+        runs = chosen_runs(args)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    sizes = {**(QUICK if args.quick else {}), **{f: getattr(args, f) for f in SIZES if getattr(args, f) is not None}}
+    task = Task(threads=args.threads, device=args.device, variant=args.variant, dibrpp_gradient=args.dibrpp_gradient,
+                **sizes)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, arrays = run_all(runs, task)
     arrays["gt"] = sky_radiance(conv.equirect_directions(task.env_height, task.env_width)).numpy()
     both = {"dibrpp_ref", "mitsuba_ref"} <= arrays.keys()
     agreement = clipped_psnr(arrays["dibrpp_ref"], arrays["mitsuba_ref"]) if both else None

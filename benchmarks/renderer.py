@@ -10,9 +10,9 @@ Peak memory is the process's peak RSS above its level before the case (Linux /pr
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -20,6 +20,8 @@ import torch
 
 from benchmarks.memory import reset_peak_rss, rss_mb
 from dibrpp import Cameras, Material, RasterSettings, Renderer, icosphere, rasterize
+from dibrpp.cli_args import Parser, check_output_folder, positive_int
+from dibrpp.io import DataError
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.renderer import build_gbuffer, build_gbuffer_compiled
 from dibrpp.shading import MCShader, SGShader
@@ -195,12 +197,17 @@ def write_tables(rows: list[dict], out: Path) -> str:
     return text + "\n\nTable A (shading only, 256^2 sphere; the paper's row is its GPU):\n\n" + summary
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="results/bench")
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m benchmarks.renderer", description=__doc__)
+    ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes, one repeat (smoke test)")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=positive_int, default=5, metavar="N", help="timed repeats of each case")
     args = ap.parse_args(argv)
+    try:
+        check_output_folder("--out", Path(args.out))
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     torch.manual_seed(0)
     if args.quick:
         rows = bench_training(1) + bench_shading(32, [1, 4], [1, 4], 1) + bench_raster([32], [1000], 1)
@@ -211,7 +218,8 @@ def main(argv=None):
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, device cpu, pid {os.getpid()}")
     print(write_tables(rows, Path(args.out)))
     print(f"\nSG FLOP bound assumes {SG_FLOP_PER_PIXEL_LOBE} FLOP per pixel-lobe at a nominal {peak_flops() / 1e9:.0f} GFLOP/s.")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

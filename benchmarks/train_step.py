@@ -8,7 +8,6 @@ writes Markdown/CSV under --out.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -16,10 +15,11 @@ from pathlib import Path
 import torch
 
 from datagen.reader import MultiViewDataset
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, positive_int
 from dibrpp.formatting import markdown_table, write_csv
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.config import TrainConfig
+from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
@@ -57,42 +57,62 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
     return {k: sorted(r[k] for r in rows)[len(rows) // 2] for k in (*PHASES, "total")}
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", default="data/glossy")
-    ap.add_argument("--shading", nargs="+", default=["sg", "mc", "sh"])
-    ap.add_argument("--iterations", type=int, default=10)
-    ap.add_argument("--warmup", type=int, default=2, help="untimed iterations first (torch.compile compiles here)")
-    ap.add_argument("--out", default="results/bench")
-    args = ap.parse_args(argv)
+SHADINGS = TrainConfig.__dataclass_fields__["shading"].metadata["choices"]
+
+
+def build_parser() -> Parser:
+    ap = Parser(prog="python -m benchmarks.train_step", description=__doc__)
+    ap.add_argument("--dataset", default="data/glossy", metavar="DIR", help="dataset folder (python -m datagen)")
+    ap.add_argument("--shading", nargs="+", default=["sg", "mc", "sh"], choices=SHADINGS,
+                    help="shading methods to time, one after the other (default: sg mc sh)")
+    ap.add_argument("--iterations", type=positive_int, default=10, metavar="N", help="timed iterations")
+    ap.add_argument("--warmup", type=non_negative_int, default=2, metavar="N",
+                    help="untimed iterations first (torch.compile compiles here)")
+    ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
+    return ap
+
+
+def configs(args) -> list[TrainConfig]:
+    """One config per --shading on the dataset's resolution, --out checked: all before any timing."""
+    check_output_folder("--out", Path(args.out))
     try:
         resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
     except DataError as e:
-        print(f"error: {e}; run `make data` (or pass --dataset)", file=sys.stderr)
-        return 2
-    results = []
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of {args.iterations} iterations")
-    for shading in args.shading:
-        config = TrainConfig.preset("cpu", dataset=args.dataset, shading=shading, image_size=resolution)
-        try:
-            r = time_iterations(config, args.iterations, args.warmup)
-        except DataError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
-        r = {"shading": shading, **{k: 1000 * v for k, v in r.items()}}
-        results.append(r)
-        print(f"{shading:>5}: " + ", ".join(f"{k} {r[k]:.0f} ms" for k in (*PHASES, "total")))
-    out = Path(args.out)
+        raise DataError(f"{e}; run `make data` (or pass --dataset)") from None
+    try:
+        return [TrainConfig.preset("cpu", dataset=args.dataset, shading=s, image_size=resolution) for s in args.shading]
+    except ConfigError as e:
+        raise DataError(f"--dataset {args.dataset}: {e}") from None
+
+
+def write_results(results: list[dict], config: TrainConfig, iterations: int, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["shading", *PHASES, "total"]
     write_csv(out / "train.csv", results, cols)
-    cfg = TrainConfig.preset("cpu")
-    lines = [f"Training iteration, CPU default config ({cfg.batch_objects} objects x 2 views, {4 * cfg.batch_objects} "
-             f"renders of {resolution}x{resolution}, K={cfg.lobes}, MC spp={cfg.spp}); ms, median of "
-             f"{args.iterations}", "",
+    res = config.image_size
+    lines = [f"Training iteration, CPU default config ({config.batch_objects} objects x 2 views, "
+             f"{4 * config.batch_objects} renders of {res}x{res}, K={config.lobes}, MC spp={config.spp}); ms, "
+             f"median of {iterations}", "",
              markdown_table(cols, [[r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]] for r in results])]
     (out / "train.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'train.md'}")
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    results = []
+    try:
+        runs = configs(args)
+        print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of {args.iterations} iterations")
+        for config in runs:
+            r = time_iterations(config, args.iterations, args.warmup)
+            r = {"shading": config.shading, **{k: 1000 * v for k, v in r.items()}}
+            results.append(r)
+            print(f"{config.shading:>5}: " + ", ".join(f"{k} {r[k]:.0f} ms" for k in (*PHASES, "total")))
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    write_results(results, runs[0], args.iterations, Path(args.out))
     return 0
 
 
