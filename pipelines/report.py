@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import base64
 import html
-import json
 from pathlib import Path
 
 from dibrpp.formatting import format_number
 from dibrpp.io import atomic_path
 
-from .tables import COLUMNS, HEADER, LIGHT_COLUMNS, LIGHT_HEADER, build_tables, row_cells, run_key
+from .tables import (COLUMNS, HEADER, LIGHT_COLUMNS, LIGHT_HEADER, RESULT_KEYS, build_tables, read_result, row_cells,
+                     run_key)
 
 # fluid: the page, its figures and its loss curves follow the window; wide tables scroll on their own
 STYLE = """body{font-family:sans-serif;margin:1em 2%}h1,h2,h3{margin:.8em 0 .3em}
@@ -49,15 +49,8 @@ def _table_html(tab: dict) -> str:
 def evaluated_runs(eval_dir: Path) -> list[tuple[Path, dict]]:
     """(result file, result) of every run evaluated into ``eval_dir``, whatever its dataset is called, variants
     and runs outside the paper's tables included; files that are not an evaluation's result are left out."""
-    found = []
-    for path in sorted(Path(eval_dir).glob("*/*.json")):
-        try:
-            r = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            continue
-        if isinstance(r, dict) and {"run", "dataset", "iteration", "shading", "lobes", "seed"} <= set(r):
-            found.append((path, r))
-    return found
+    results = ((path, read_result(path, RESULT_KEYS | {"run"})) for path in sorted(Path(eval_dir).glob("*/*.json")))
+    return [(path, r) for path, r in results if r is not None]
 
 
 def _cell(r: dict, key: str) -> str:

@@ -41,10 +41,22 @@ def run_key(r: dict) -> tuple:
     return (r["dataset"], r["shading"], lobes, r["seed"])
 
 
+RESULT_KEYS = frozenset({"dataset", "shading", "lobes", "seed", "iteration"})  # of pipelines.evaluate's results
+
+
+def read_result(path: Path, keys=RESULT_KEYS) -> dict | None:
+    """The result JSON at ``path``, or None for any other file (not JSON, unreadable, or without ``keys``)."""
+    try:
+        r = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return r if isinstance(r, dict) and keys <= r.keys() else None
+
+
 def load_results(eval_dir: Path) -> dict:
+    """{run_key: result} of the default-model results under ``eval_dir``; other files there are skipped."""
     out = {}
-    for p in sorted(eval_dir.glob("*/*.json")):
-        r = json.loads(p.read_text())
+    for r in filter(None, map(read_result, sorted(Path(eval_dir).glob("*/*.json")))):
         if not r.get("variant"):  # ablations of the model (pipelines.evaluate.run_variant) are not paper rows
             out[run_key(r)] = r
     return out

@@ -39,3 +39,13 @@ def test_tables_judge_claims_and_name_missing_runs(tmp_path):
     assert "DIB-R++ MC's light on glossy lights a rough-metal sphere better than SH's: does NOT hold" in md
     assert "| glossy / DIB-R++ SG | 0.030 | 0.024 | 0.050 | 0.057 | 0.200 | 0.091 | 0.200 | 0.140 | 0.100 | 0.250 | 0.800 | 4.0 | 25.0 |" in md
     assert (tmp_path / "tables.tex").read_text().count(r"\begin{tabular}") == 5
+
+
+def test_files_that_are_not_results_are_skipped(tmp_path):
+    write_run(tmp_path, "glossy", "sg", 0, light=0.20)
+    (tmp_path / "glossy" / "notes.json").write_text("not JSON at all")
+    (tmp_path / "glossy" / "other.json").write_text(json.dumps({"something": "else"}))
+    (tmp_path / "glossy" / "list.json").write_text("[1, 2]")
+    (tmp_path / "glossy" / "binary.json").write_bytes(b"\xff\xfe\x00")
+    assert list(tables.load_results(tmp_path)) == [("glossy", "sg", 32, 0)]
+    assert "| glossy / DIB-R++ SG |" in tables.write_tables(tmp_path)
