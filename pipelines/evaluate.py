@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import torch
@@ -236,11 +237,36 @@ def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
     seen = "unseen objects and env maps" if args.split == "test" else "objects and env maps it was trained on"
     write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: {args.split} views ({seen})")
     rows, labels = figures["failures"]
-    write_figure(rows, path.with_name(f"{run.name}_failures.png"),
+    write_figure(rows, path.with_name(f"{path.stem}_failures.png"),
                  f"{r['dataset']} / {run.name}: failure cases, the worst {args.split} view by each metric", labels)
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(r, indent=1))
     return r
+
+
+def _dataset_name(run: Path, dataset: str | None) -> str | None:
+    """The folder name of the dataset ``run`` is evaluated on; None if its config cannot be read (the run is
+    reported as not evaluated when its turn comes)."""
+    try:
+        return Path(dataset or load_config(run).dataset).name
+    except DataError:
+        return None
+
+
+def result_paths(runs: list[Path], root: Path, out: Path, dataset: str | None) -> dict[Path, Path]:
+    """Where each run's result goes: ``out/<dataset>/<run folder name>.json``; where two runs evaluated on one
+    dataset share a folder name (runs/a/sg-seed0, runs/b/sg-seed0), their path below ``root`` joined by "__"
+    (``a__sg-seed0.json``). A DataError if two runs would still write one file."""
+    datasets = {run: _dataset_name(run, dataset) for run in runs}
+    shared = Counter((datasets[run], run.name) for run in runs)
+    paths = {}
+    for run in runs:
+        name = run.name if shared[datasets[run], run.name] == 1 else "__".join(run.relative_to(root).parts)
+        paths[run] = out / str(datasets[run]) / f"{name}.json"
+    clash = [p for p, n in Counter(paths[run] for run in runs if datasets[run]).items() if n > 1]
+    if clash:
+        raise DataError(f"--runs {root}: several runs would write {clash[0]}; rename one of their folders")
+    return paths
 
 
 def main(argv=None) -> int:
@@ -267,17 +293,20 @@ def main(argv=None) -> int:
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    runs = find_runs(Path(args.runs))
-    if not runs:
-        print(f"error: no trained runs under {args.runs}; run `make train-glossy` (or another train-*) first",
-              file=sys.stderr)
-        return 2
     out = Path(args.out)
+    runs = find_runs(Path(args.runs))
+    try:
+        if not runs:
+            raise DataError(f"no trained runs under {args.runs}; run `make train-glossy` (or another train-*) first")
+        paths = result_paths(runs, Path(args.runs), out, args.dataset)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     results, failed, t0, evaluated = [], [], time.perf_counter(), 0
     for i, run in enumerate(runs, 1):
         try:
             config = load_config(run)
-            path = out / Path(args.dataset or config.dataset).name / f"{run.name}.json"
+            path = paths[run]
             key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
                        refine_steps=args.refine_steps,
                        dataset=str(Path(args.dataset or config.dataset).resolve()))

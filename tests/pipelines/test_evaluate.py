@@ -48,3 +48,52 @@ def test_direction_figure_shows_default_seed0_runs_with_views_that_have_a_domina
                result("diffuse", "sg", [])]  # no view with a dominant light: no figure
     written = evaluate.write_direction_figures(results, tmp_path)
     assert written == [tmp_path / "direction_glossy.png"] and written[0].stat().st_size > 1000
+
+
+def _fake_run(folder, dataset):
+    from pipelines.config import TrainConfig
+
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps(TrainConfig(dataset=dataset).to_dict()))
+    (folder / "checkpoint.pt").write_bytes(b"never read here")
+    return folder
+
+
+def test_runs_that_share_a_folder_name_keep_their_results_apart(tmp_path, capsys):
+    from unittest import mock
+
+    from dibrpp.io import DataError
+    from pipelines.runs import find_runs
+
+    root, out = tmp_path / "runs", tmp_path / "eval"
+    for parent in ("a", "b"):
+        _fake_run(root / parent / "sg-seed0", "data/glossy")
+    _fake_run(root / "a" / "mc-seed0", "data/glossy")
+    _fake_run(root / "b" / "mc-seed0", "data/metallic")  # same name, other dataset: no collision
+    paths = evaluate.result_paths(find_runs(root), root, out, None)
+    assert sorted(str(p.relative_to(out)) for p in paths.values()) == [
+        "glossy/a__sg-seed0.json", "glossy/b__sg-seed0.json", "glossy/mc-seed0.json", "metallic/mc-seed0.json"]
+    # every run on one --dataset: now the mc runs collide too
+    on_one = evaluate.result_paths(find_runs(root), root, out, "data/other")
+    assert sorted(p.name for p in on_one.values()) == ["a__mc-seed0.json", "a__sg-seed0.json", "b__mc-seed0.json",
+                                                       "b__sg-seed0.json"]
+    # unique names stay as they were: <dataset>/<run folder name>.json
+    alone = evaluate.result_paths(find_runs(root / "a"), root / "a", out, None)
+    assert sorted(str(p.relative_to(out)) for p in alone.values()) == ["glossy/mc-seed0.json", "glossy/sg-seed0.json"]
+    # main writes each run to its own path
+    written = []
+
+    def record(run, path, key, args):
+        written.append(path)
+        raise DataError("not evaluated in this test")
+
+    with mock.patch.object(evaluate, "evaluate_and_write", record):
+        assert evaluate.main(["--runs", str(root), "--out", str(out)]) == 2
+    assert sorted(written) == sorted(paths.values())
+    # a run whose own name is another's joined path: refused, naming the file, before any evaluation
+    _fake_run(root / "a__sg-seed0", "data/glossy")
+    written.clear()
+    with mock.patch.object(evaluate, "evaluate_and_write", record):
+        assert evaluate.main(["--runs", str(root), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert not written and err[-1].startswith("error: --runs") and "a__sg-seed0.json" in err[-1]
