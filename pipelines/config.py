@@ -50,8 +50,9 @@ class TrainConfig:
     light_colour: str = _opt("white", "white-balanced light, or light of any colour", ("white", "free"))
     light_scale: str = _opt("softplus", "light sharpness and intensity linear or exponential in the head's output",
                             ("softplus", "log"))
-    light_head: str = _opt("global", "light regressed from the global code, or read from the input through the "
-                           "predicted geometry (the object as a light probe)", ("global", "probe"))
+    light_head: str = _opt("auto", "light read from the input through the predicted geometry (probe; the object as a "
+                           "light probe) or regressed from the global code (global, the paper's); auto: probe, "
+                           "but global for the SH baseline", ("auto", "probe", "global"))
     probe_start: str = _opt("luminance", "the probe head's first light: the mirror cue's luminance or its colour",
                             ("luminance", "colour"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
@@ -93,6 +94,9 @@ class TrainConfig:
             raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
         if self.shared_light and self.swap_light:
             raise ConfigError("shared_light and swap_light pair the batch differently; choose one")
+        if self.shading == "sh" and self.light_head == "probe":
+            raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
+                              "(or auto) with --shading sh")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self
@@ -121,6 +125,12 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def resolved_light_head(self) -> str:
+        """The light head the model gets: 'auto' is the probe head, but DIB-R's SH baseline keeps the paper's."""
+        if self.light_head != "auto":
+            return self.light_head
+        return "global" if self.shading == "sh" else "probe"
 
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
@@ -181,8 +191,10 @@ VARIANTS: dict[str, Variant] = {
                           {"swap_light": True}, runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
     "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
                                    {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0}),
-    "probe-light": Variant("the light read from the input through the predicted geometry (the object as a probe)",
-                           {"light_head": "probe"}, runs=(("glossy", 0), ("metallic", 0))),
+    "global-light": Variant("the paper's light head: the light regressed from the global code (no light probe)",
+                            {"light_head": "global"}, runs=(("glossy", 0), ("metallic", 0))),
+    "probe-light": Variant("the light read from the input through the predicted geometry, whatever the shading",
+                           {"light_head": "probe"}, runs=()),
     "probe-light-colour": Variant("the probe head starting from the mirror cue's colour instead of its luminance",
                                   {"light_head": "probe", "probe_start": "colour"}, runs=(("glossy", 0), ("metallic", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model

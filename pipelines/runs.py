@@ -166,7 +166,7 @@ def make_model(config: TrainConfig) -> Encoder:
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
                                predict_metallic=config.predict_metallic, texture=config.texture,
                                light_colour=config.light_colour, light_scale=config.light_scale,
-                               light_head=config.light_head, probe_start=config.probe_start))
+                               light_head=config.resolved_light_head(), probe_start=config.probe_start))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
