@@ -51,8 +51,8 @@ class TrainConfig:
     light_scale: str = _opt("softplus", "light sharpness and intensity linear or exponential in the head's output",
                             ("softplus", "log"))
     light_head: str = _opt("auto", "light read from the input through the predicted geometry (probe; the object as a "
-                           "light probe) or regressed from the global code (global, the paper's); auto: probe, "
-                           "but global for the SH baseline", ("auto", "probe", "global"))
+                           "light probe) or regressed from the global code (global, the paper's); auto: probe for "
+                           "SG light (sg, sh-sg), global for mc and sh", ("auto", "probe", "global"))
     probe_start: str = _opt("luminance", "the probe head's first light: the mirror cue's luminance or its colour",
                             ("luminance", "colour"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
@@ -127,10 +127,11 @@ class TrainConfig:
         return asdict(self)
 
     def resolved_light_head(self) -> str:
-        """The light head the model gets: 'auto' is the probe head, but DIB-R's SH baseline keeps the paper's."""
+        """The light head the model gets. 'auto': the probe head where it was measured to place the light better
+        (SG lobes: sg, sh-sg), the paper's global head elsewhere (MC's env map: not measured yet; SH baseline)."""
         if self.light_head != "auto":
             return self.light_head
-        return "global" if self.shading == "sh" else "probe"
+        return "probe" if self.shading in ("sg", "sh-sg") else "global"
 
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
