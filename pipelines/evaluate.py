@@ -1,15 +1,17 @@
 """Evaluate trained runs on the test split (unseen objects under unseen env maps) with the paper's metrics.
 
-    python -m pipelines.evaluate --runs runs --out results/eval
+    python -m pipelines.evaluate --runs runs --out results/eval [--refine-steps 30 --out results/eval-refine30]
 
 Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), predicts from every test
 view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
 input view, 2D IoU loss, light 1 - NCC (predicted light as a world-frame equirect map vs the GT env
-map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV) and Chamfer distance to the GT mesh.
-Writes ``<dataset>/<run>.json``, a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and
-light ours vs GT, novel views) and ``<dataset>/<run>_failures.png`` (the worst test view by each metric)
-per run (a checkpoint evaluated before is not evaluated again), a
-Markdown/CSV table of all runs and the paper-style tables (:mod:`pipelines.tables`).
+map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV), Chamfer distance to the GT mesh, the
+probe-sphere light metrics and the predicted normals' angular error. Writes ``<dataset>/<run>.json`` (runs
+sharing a folder name get their parent folders in the name), a figure ``<dataset>/<run>.png`` (input,
+re-rendering, albedo and light ours vs GT, novel views) and ``<dataset>/<run>_failures.png`` (the worst test
+view by each metric) per run; a result is reused only while the run's checkpoint and config and the
+evaluation's settings are the same. Then a Markdown/CSV table of all runs, the paper-style tables
+(:mod:`pipelines.tables`) and the HTML report. Details: docs/evaluation.md.
 """
 from __future__ import annotations
 
