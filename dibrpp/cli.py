@@ -113,6 +113,8 @@ def render_command(args) -> None:
         albedo = torch.tensor([args.albedo], device=device)
     material = Material(albedo=albedo, roughness=args.roughness, metallic=args.metallic, specular=args.specular)
     cameras = Cameras.orbit(args.distance, args.elevation, args.azimuth, args.fov, args.resolution, device=device)
+    what = "albedo" if args.albedo_only else args.shading + (f", {args.spp} spp" if args.shading == "mc" else "")
+    print(f"rendering {args.mesh} at {args.resolution}x{args.resolution} ({what})", flush=True)
     if args.albedo_only:
         image = Renderer("sg").render_albedo(mesh, cameras, material).image[0]
     else:
@@ -120,6 +122,8 @@ def render_command(args) -> None:
 
         env = EnvMap.from_exr(args.envmap).to(device)
         _check_equirect(args.envmap, env)
+        if args.shading == "sg":
+            print(f"fitting {args.sg_lobes} SG lobes to {args.envmap}", flush=True)
         light = {"mc": lambda: env, "sg": lambda: fit_sg_to_envmap(env, args.sg_lobes),
                  "sh": lambda: project_envmap_to_sh(env)}[args.shading]()
         with torch.no_grad():
@@ -128,6 +132,7 @@ def render_command(args) -> None:
         io.write_image(args.out, image)
     except OSError as e:  # e.g. the disk filled up or the folder changed during the render
         raise CLIError(f"--out {args.out}: cannot write the image ({e})") from None
+    print(f"wrote {args.out}")
 
 
 def main(argv=None) -> int:
