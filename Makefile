@@ -165,7 +165,7 @@ bench: bench-renderer bench-mitsuba bench-train
 studies: $(VENV)/.installed
 	$(PY) -m studies --out results/studies
 
-# How much of the glossy cars' reflection two views of the camera ring share (README, "Why the light stays weak").
+# How much of the glossy cars' reflection two views of the camera ring share (docs/studies.md#reflections-shared-by-two-views).
 study-reflections: $(VENV)/.installed
 	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m studies.reflections --dataset $(DATA)/glossy --out results/studies

@@ -3,7 +3,7 @@
 Parameters: base colour ``a`` (diffuse albedo, linear), roughness beta, metallic m, and
 ``specular`` = Principled "Specular IOR Level" (0.5 => F0 = 0.04 at IOR 1.5, 0 => no specular lobe).
 
-Choices that follow Cycles rather than the paper's literal text (all listed in the README):
+Choices that follow Cycles rather than the paper's literal text (all listed in docs/deviations.md#renderer):
 - NDF alpha = beta^2 (``roughness_map="blender"``); the paper's (beta+1)^2/8 is ``"karis"``.
 - Shadowing: Smith GGX height-correlated (``geometry="smith"``); the paper's Schlick G (eq. 3) is ``"schlick"``.
 - Metals have no diffuse lobe: diffuse is weighted by (1 - m), and for dielectrics by 1 - F(n.v).

@@ -16,7 +16,7 @@ What differs from a plain "global vector -> fully connected heads" encoder, and 
   a global code to the albedo. A texture decoded from one global vector has to memorise colours.
 - **Light** is white-balanced (its mean radiance over the sphere is grey), so the one colour
   degree of freedom a diffuse image cannot tell apart -- a tinted light on a paint vs. the tint in the
-  paint -- goes to the albedo (README, "Light and albedo colour").
+  paint -- goes to the albedo (docs/results.md#light-and-albedo-colour).
 """
 from __future__ import annotations
 
@@ -61,7 +61,8 @@ class ModelConfig:
     light_colour: str = "white"  # white: white-balanced light | free: any colour
     # softplus: SG sharpness / amplitude and env radiance grow linearly with the head's output | log: they are
     # exp(output), so a step changes them by a factor and a sharp, bright sun is a few steps away (an ablation:
-    # it made one lobe dominant but did not improve the light metrics; README, "Light")
+    # it made one lobe dominant but did not improve the light metrics;
+    # docs/experiments.md#4-seven-principled-changes-none-better)
     light_scale: str = "softplus"
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.light_probe), in the probe frame
