@@ -19,9 +19,11 @@ class ConfigError(ValueError):
     """A configuration that cannot be trained: the message names the field and what to do."""
 
 
-def _opt(default, help: str, choices: tuple | None = None, minimum: float | None = None):  # noqa: A002
-    """A config field with its CLI help, its allowed values or its lower bound (checked by from_dict)."""
-    return field(default=default, metadata=dict(help=help, choices=choices, minimum=minimum))
+def _opt(default, help: str, choices: tuple | None = None, minimum: float | None = None,  # noqa: A002
+         above: float | None = None):
+    """A config field with its CLI help, its allowed values or its lower bound, inclusive (``minimum``) or
+    strict (``above``) (checked by from_dict)."""
+    return field(default=default, metadata=dict(help=help, choices=choices, minimum=minimum, above=above))
 
 
 @dataclass
@@ -34,7 +36,7 @@ class TrainConfig:
     seed: int = _opt(0, "seed of the initial weights, the batches and the MC noise", minimum=0)
     iterations: int = _opt(1500, "training iterations", minimum=1)
     batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
-    lr: float = _opt(3e-4, "Adam learning rate", minimum=0.0)
+    lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
     w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
@@ -85,11 +87,13 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be {kind.__name__}, got {value!r}")
             if kind is float and not math.isfinite(value):
                 raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
-            choices, minimum = f.metadata.get("choices"), f.metadata.get("minimum")
+            choices, minimum, above = (f.metadata.get(k) for k in ("choices", "minimum", "above"))
             if choices is not None and value not in choices:
                 raise ConfigError(f"{f.name} must be one of {', '.join(map(repr, choices))}; got {value!r}")
-            if minimum is not None and value < minimum or (f.name == "lr" and value <= 0):
-                raise ConfigError(f"{f.name} must be {'> 0' if f.name == 'lr' else f'>= {minimum}'}, got {value!r}")
+            if minimum is not None and value < minimum:
+                raise ConfigError(f"{f.name} must be >= {minimum}, got {value!r}")
+            if above is not None and value <= above:
+                raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
         if self.image_size % 16:
             raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
         if self.shared_light and self.swap_light:

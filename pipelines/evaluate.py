@@ -24,14 +24,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from datagen.reader import MultiViewDataset, collate
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, positive_int
 from dibrpp.display import display_image, tonemap_envmap
 from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
 from dibrpp.io import DataError, atomic_path
 from dibrpp.lights import EnvMap
 
 from . import metrics
-from datagen.reader import MultiViewDataset, collate
-from .cli import Parser, check_output_folder, non_negative_int, positive_int
 from .model import encoder_input
 from .refine import refine_light
 from .report import write_report

@@ -96,14 +96,15 @@ class ProbeLightHead(nn.Module):
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region) with its own sharpness and intensity."""
 
-    def __init__(self, kind: str, lobes: int, height: int, width: int, code: int = 512, channels: int = 32,
-                 start: str = "luminance"):
+    def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
+                 max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance"):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
         if kind == "sg" and lobes < 2:
             raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
         self.kind, self.lobes, self.height, self.width, self.start = kind, lobes, height, width, start
+        self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
         cin = 8 + 3  # the grid and each cell's direction
         self.inp = nn.Conv2d(cin, channels, 3)
         self.film = nn.Linear(code, 2 * channels)  # the global code scales and shifts the features
@@ -114,6 +115,9 @@ class ProbeLightHead(nn.Module):
         nn.init.zeros_(self.film.weight)
         nn.init.zeros_(self.film.bias)
         self.register_buffer("cell_dirs", conventions.equirect_directions(height, width).permute(2, 0, 1)[None])
+        # the sun's prior over cells: their solid angles (not saved: derived from the grid's size)
+        self.register_buffer("cell_log_solid_angle", conventions.equirect_solid_angles(height, width).expand(
+            -1, width).flatten().log(), persistent=False)
         self.log_gain = nn.Parameter(torch.zeros(()))
         if kind == "sg":
             self.register_buffer("axes", fibonacci_axes(lobes - 1))
@@ -138,19 +142,17 @@ class ProbeLightHead(nn.Module):
         cue = grid[:, :3] if self.start == "colour" else grid[:, :3].mean(1, keepdim=True)
         log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
         if self.kind == "env":
-            return {"image": torch.exp(log_map.clamp_max(12.0)).permute(0, 2, 3, 1)}
-        amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(12.0))  # (B, K-1, 3)
+            return {"image": torch.exp(log_map.clamp_max(self.max_log_radiance)).permute(0, 2, 3, 1)}
+        amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
         luminance = grid[:, :3].mean(1, keepdim=True)
         logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
-        solid = conventions.equirect_solid_angles(self.height, self.width, grid.device, grid.dtype)
-        solid = solid.expand(-1, self.width).flatten()
-        p = torch.softmax(logits + solid.log(), -1)  # a distribution over cells
+        p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
         sun_axis = F.normalize(p @ self.cell_dirs.flatten(2)[0].T, dim=-1, eps=1e-6)
         pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
         sun = self.sun(torch.cat([pooled, code], -1))
-        sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(12.0))
+        sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
         k = self.lobes - 1
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1)], 1),
                 "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k),
-                                        sun[:, :1].exp().clamp(0.5, 3000.0)], 1),
+                                        sun[:, :1].exp().clamp(0.5, self.max_sharpness)], 1),
                 "amplitude": torch.cat([amplitude, sun_amplitude.unsqueeze(1)], 1)}

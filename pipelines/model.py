@@ -269,7 +269,8 @@ class Encoder(nn.Module):
         self.material_head = nn.Linear(512, 3)
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, start=c.probe_start)
+            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
+                                             start=c.probe_start)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:

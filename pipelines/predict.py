@@ -25,11 +25,11 @@ import numpy as np
 import torch
 
 from dibrpp import Cameras
+from dibrpp.cli_args import (Parser, check_output_folder, finite_float, non_negative_float, non_negative_int,
+                             positive_int, unit_rgb)
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .cli import (Parser, check_output_folder, finite_float, non_negative_float, non_negative_int, positive_int,
-                  unit_rgb)
 from .model import encoder_input
 from .refine import refine_light
 from .runs import load_camera, load_run, make_renderer, run_folder

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from .losses import foreground_l1, hdr_srgb
-from .model import LIGHT_KINDS, Prediction, white_balance
+from .model import LIGHT_KINDS, MAX_LOG_RADIANCE, MAX_SHARPNESS, Prediction, white_balance
 
 
 def _free(params: dict, kind: str) -> dict:
@@ -29,10 +29,11 @@ def _free(params: dict, kind: str) -> dict:
 
 def _constrained(free: dict, kind: str, env_height: int) -> dict:
     if kind == "sg":
-        light = {"axis": F.normalize(free["axis"], dim=-1, eps=1e-6), "sharpness": free["sharpness"].exp().clamp(0.5, 3000.0),
-                 "amplitude": free["amplitude"].clamp_max(12.0).exp()}
+        light = {"axis": F.normalize(free["axis"], dim=-1, eps=1e-6),
+                 "sharpness": free["sharpness"].exp().clamp(0.5, MAX_SHARPNESS),
+                 "amplitude": free["amplitude"].clamp_max(MAX_LOG_RADIANCE).exp()}
     elif kind == "env":
-        light = {"image": free["image"].clamp_max(12.0).exp()}
+        light = {"image": free["image"].clamp_max(MAX_LOG_RADIANCE).exp()}
     else:
         light = {"coeffs": free["coeffs"]}
     return white_balance(light, kind, env_height)

@@ -24,13 +24,13 @@ import torch
 import torch.distributed as dist
 
 from datagen.reader import MultiViewDataset
+from dibrpp.cli_args import Parser, check_output_folder
 from dibrpp.display import display_image, tonemap_envmap
 from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
 from . import runs
-from .cli import Parser, check_output_folder
 from .config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides,
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
