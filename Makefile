@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
+.PHONY: light-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~4.5 h)"
@@ -34,6 +34,7 @@ help:
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
+	@echo "make light-prior      env maps without objects and the light prior fitted to them (variant light-prior; ~10 min)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -94,6 +95,12 @@ train-%: $(VENV)/.installed
 	  echo "== $* / sg / seed $$s"; \
 	  $(PY) -m pipelines.train --dataset $(DATA)/$* --shading sg --seed $$s --out $(RUNS)/$*/sg-seed$$s --resume $(TRAIN_ARGS); \
 	done
+
+# The light prior (variant light-prior): 2000 procedural env maps without objects (~10 min on 2 cores; resumable)
+# and their log-luminance PCA, cached beside them and refitted when the maps change.
+light-prior: $(VENV)/.installed
+	$(PY) -m datagen.prior_maps --out $(DATA)/light-prior
+	$(PY) -m pipelines.light_prior --maps $(DATA)/light-prior
 
 bench-renderer: $(VENV)/.installed
 	$(PY) -m benchmarks.renderer --out results/bench

@@ -94,4 +94,4 @@ class Cameras:
         f = conv.focal_ndc(self.fov).view(-1, 1, 1, 1)
         rays = torch.cat([xy.unsqueeze(0) / f, -torch.ones(len(self), h, w, 1, device=self.device)], -1)
         rays = torch.nn.functional.normalize(rays, dim=-1)
-        return -(rays @ self.rotation)  # camera->world rotation is R^T; row-vector form uses R
+        return -(rays @ self.rotation.unsqueeze(1))  # camera->world rotation is R^T; row-vector form uses R

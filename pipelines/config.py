@@ -57,6 +57,10 @@ class TrainConfig:
                            "SG light (sg, sh-sg), global for mc and sh", ("auto", "probe", "global"))
     probe_start: str = _opt("luminance", "the probe head's first light: the mirror cue's luminance or its colour",
                             ("luminance", "colour"))
+    probe_samples: str = _opt("pixels", "where the probe head reads the input: the pixels the predicted surface "
+                              "covers (rasterised) or its texels' projections", ("pixels", "texels"))
+    light_prior: str = _opt("", "folder of env maps whose log-luminance PCA the probe head's SG sky lives in "
+                            "(pipelines.light_prior; `make light-prior`); '' for none")
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
@@ -101,6 +105,9 @@ class TrainConfig:
         if self.shading == "sh" and self.light_head == "probe":
             raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
                               "(or auto) with --shading sh")
+        if self.light_prior and (self.shading not in ("sg", "sh-sg") or self.resolved_light_head() != "probe"):
+            raise ConfigError("light_prior shapes the probe head's SG sky; use it with --shading sg or sh-sg and the "
+                              "probe light head")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self
@@ -202,6 +209,10 @@ VARIANTS: dict[str, Variant] = {
                            {"light_head": "probe"}, runs=()),
     "probe-light-colour": Variant("the probe head starting from the mirror cue's colour instead of its luminance",
                                   {"light_head": "probe", "probe_start": "colour"}, runs=(("glossy", 0), ("metallic", 0))),
+    "probe-texels": Variant("the probe head reading the input at the predicted surface's texels, not its pixels",
+                            {"light_head": "probe", "probe_samples": "texels"}, runs=(("metallic", 0),)),
+    "light-prior": Variant("the probe head's SG sky in a prior learned from 2000 procedural env maps (log-PCA, 16)",
+                           {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

@@ -2,9 +2,10 @@
 
 A glossy or metallic surface shows, at each pixel, the light arriving from the mirror direction of the view
 about its normal, r = 2(n.v)n - v (Rematas et al., DeepReflectanceMaps, CVPR 2016; Georgoulis et al., TPAMI
-2018); a diffuse one shows the light integrated about n. :func:`probe_grid` scatters what the input view shows
-at each texel of the predicted surface into an equirect grid at r (the mirror cue) and at n (the diffuse cue),
-with a coverage channel each. The pixel -> light-direction mapping is geometry, so the network does not have to
+2018); a diffuse one shows the light integrated about n. :func:`pixel_samples` rasterises the predicted surface
+in the input view (its normal and view direction at each covered pixel, with what the input shows there) and
+:func:`probe_grid` scatters those into an equirect grid at r (the mirror cue) and at n (the diffuse cue), with a
+coverage channel each. The pixel -> light-direction mapping is geometry, so the network does not have to
 learn it from a few dozen env maps; :class:`ProbeLightHead` is a small CNN on that grid (wrap-around in azimuth)
 joined with the global code, whose output starts as the projected map itself (its last layer is zero).
 
@@ -21,11 +22,17 @@ import torch.nn.functional as F
 from torch import nn
 
 from dibrpp import conventions as conventions
+from dibrpp.camera import Cameras
+from dibrpp.mesh import Meshes
+from dibrpp.raster import RasterSettings, rasterize
+from dibrpp.renderer import bend_towards_view
 
 # camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 LOG_EPS = 1e-3  # radiance floor of the grid's log (the input is sRGB in [0, 1] decoded to linear)
 BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
+# light_prior: how strongly the prior's components are held to their spread when fitted to the mirror cue
+PRIOR_STRENGTH = 0.1
 
 
 def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
@@ -60,6 +67,32 @@ def scatter_to_grid(dirs: torch.Tensor, values: torch.Tensor, weight: torch.Tens
     return sums[:, :c] / total.clamp_min(1e-6 * mean_weight), total / mean_weight
 
 
+# hard coverage only (the probe reads covered pixels), and the template is closed and wound outwards
+_PROBE_RASTER = RasterSettings(soft=False, filter_width=0.0, cull_backfaces=True)
+
+
+def pixel_samples(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor,
+                  alpha: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The predicted surface as the input view shows it, per pixel (dense, (B, H*W, ...), H = W the cameras'
+    resolution): world-frame unit normals (shading normals, as the renderer's) and directions to the camera,
+    the input's linear ``radiance`` (B, H, W, 3) there, and a weight (the input's ``alpha`` (B, H, W) on the
+    pixels the surface covers, else 0)."""
+    res = cameras.resolution
+    if radiance.shape[1:3] != (res, res) or alpha.shape[1:] != (res, res):
+        raise ValueError(f"the input view is {tuple(radiance.shape[1:3])} pixels, its cameras {res} x {res}")
+    meshes = meshes.expand(len(cameras))
+    frags = rasterize(meshes, cameras, _PROBE_RASTER)
+    position = frags.interpolate(meshes.verts, meshes.faces)
+    view = F.normalize(cameras.centers.to(position)[frags.batch] - position, dim=-1, eps=1e-12)
+    normal = F.normalize(frags.interpolate(meshes.vertex_normals(), meshes.faces), dim=-1, eps=1e-12)
+    normal = bend_towards_view(normal, view)
+    b = len(cameras)
+    up = normal.new_tensor([0.0, 0.0, 1.0])  # any unit vector where nothing is covered (weight 0)
+    dense = lambda packed: up.expand(b * res * res, 3).index_copy(0, frags.pix, packed).view(b, res * res, 3)  # noqa: E731
+    weight = frags.mask.reshape(b, -1) * alpha.reshape(b, -1).clamp(0, 1)
+    return dense(normal), dense(view), radiance.reshape(b, -1, 3), weight
+
+
 def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tensor, weight: torch.Tensor,
                world_to_camera: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(B, 8, H, W) probe-frame grid: mirror-cue radiance (3) and coverage (1), diffuse-cue radiance (3) and
@@ -83,9 +116,9 @@ def fibonacci_axes(k: int) -> torch.Tensor:
 
 
 def sample_grid(grid: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Bilinear values of (B, C, H, W) equirect grids at directions (K, 3) -> (B, K, C)."""
+    """Bilinear values of (B, C, H, W) equirect grids at directions (K, 3), or (B, K, 3) per grid, -> (B, K, C)."""
     uv = conventions.direction_to_equirect_uv(dirs)
-    xy = torch.stack([2 * uv[:, 0] - 1, 2 * uv[:, 1] - 1], -1).view(1, 1, -1, 2).expand(grid.shape[0], -1, -1, -1)
+    xy = (2 * uv - 1).view(-1, 1, uv.shape[-2], 2).expand(grid.shape[0], -1, -1, -1)
     return F.grid_sample(grid, xy.to(grid), align_corners=False, padding_mode="border")[:, :, 0].permute(0, 2, 1)
 
 
@@ -97,13 +130,17 @@ class ProbeLightHead(nn.Module):
     starting at the mirror cue's brightest region) with its own sharpness and intensity."""
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
-                 max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance"):
+                 max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
+                 prior_components: int = 0):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
         if kind == "sg" and lobes < 2:
             raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
         self.kind, self.lobes, self.height, self.width, self.start = kind, lobes, height, width, start
+        self.prior_components = prior_components
+        if prior_components and kind != "sg":
+            raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
         self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
         cin = 8 + 3  # the grid and each cell's direction
         self.inp = nn.Conv2d(cin, channels, 3)
@@ -127,11 +164,47 @@ class ProbeLightHead(nn.Module):
             nn.init.zeros_(self.sun.weight)
             with torch.no_grad():
                 self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
+        if prior_components:  # pipelines.light_prior: world-frame log-luminance mean and components, saved with the run
+            k = prior_components
+            self.register_buffer("prior_maps", torch.zeros(1, k + 1, height, width))
+            self.register_buffer("prior_std", torch.ones(k))
+            self.prior_code = nn.Linear(channels + code, k + 1)  # a correction to the fitted code (and level)
+            nn.init.zeros_(self.prior_code.weight)
+            nn.init.zeros_(self.prior_code.bias)
+
+    def set_prior(self, prior: dict) -> None:
+        """Copy a fitted prior (pipelines.light_prior.build) into the head."""
+        k = self.prior_components
+        if prior["basis"].shape[0] < k:
+            raise ValueError(f"the light prior has {prior['basis'].shape[0]} components, the model asks for {k}")
+        maps = torch.cat([prior["mean"][None], prior["basis"][:k]]).view(1, k + 1, self.height, self.width)
+        self.prior_maps.copy_(maps)
+        self.prior_std.copy_(prior["std"][:k])
+
+    def _prior_sky(self, grid: torch.Tensor, features: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
+        """(B, K-1) log luminance of the sky lobes: the prior's map that best explains the mirror cue where the
+        object shows it (a ridge fit of its code, weighted by coverage), plus a learnt correction."""
+        b, k = grid.shape[0], self.prior_components
+        maps = self.prior_maps.expand(b, -1, -1, -1)
+        world = lambda d: d @ probe_to_world.mT  # noqa: E731 (probe-frame rows -> world-frame rows)
+        cells = self.cell_dirs.flatten(2)[0].T.expand(b, -1, -1)
+        at_cells = sample_grid(maps, world(cells))  # (B, HW, K+1): the mean map and the components
+        at_axes = sample_grid(maps, world(self.axes.expand(b, -1, -1)))
+        y = torch.log(grid[:, :3].mean(1) + LOG_EPS).flatten(1) - at_cells[..., 0]
+        w = grid[:, 3].flatten(1).clamp(0, 1) * self.cell_log_solid_angle.exp() / (4 * math.pi)
+        design = torch.cat([torch.ones_like(at_cells[..., :1]), at_cells[..., 1:]], -1)  # level, components
+        reg = torch.diag(torch.cat([grid.new_zeros(1), PRIOR_STRENGTH / self.prior_std ** 2]))
+        normal = design.mT @ (w.unsqueeze(-1) * design) + reg + 1e-6 * torch.eye(k + 1, device=grid.device)
+        fitted = torch.linalg.solve(normal, (design.mT @ (w * y).unsqueeze(-1)))[..., 0]
+        c = fitted + self.prior_code(features)
+        return at_axes[..., 0] + c[:, :1] + (at_axes[..., 1:] * c[:, None, 1:]).sum(-1)
 
     def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
 
-    def forward(self, grid: torch.Tensor, code: torch.Tensor) -> dict:
+    def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor | None = None) -> dict:
+        """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
+        rotation from the probe frame to the world's (needed by the light prior, which lives in the world)."""
         b = grid.shape[0]
         x = torch.cat([grid, self.cell_dirs.expand(b, -1, -1, -1)], 1)
         h = F.leaky_relu(self._conv(self.inp, x), 0.2)
@@ -143,7 +216,13 @@ class ProbeLightHead(nn.Module):
         log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
         if self.kind == "env":
             return {"image": torch.exp(log_map.clamp_max(self.max_log_radiance)).permute(0, 2, 3, 1)}
-        amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
+        if self.prior_components:
+            if probe_to_world is None:
+                raise ValueError("the light prior needs the probe frame's rotation to the world (probe_to_world)")
+            log_sky = self._prior_sky(grid, torch.cat([h.mean((2, 3)), code], -1), probe_to_world) + self.log_gain
+            amplitude = torch.exp(log_sky.clamp_max(self.max_log_radiance)).unsqueeze(-1).expand(-1, -1, 3)
+        else:
+            amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
         luminance = grid[:, :3].mean(1, keepdim=True)
         logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
         p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells

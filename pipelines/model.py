@@ -34,15 +34,15 @@ from dibrpp.lights import EnvMap, SGLight, SHLight
 from dibrpp.mesh import Meshes, icosphere, vertex_normals
 from dibrpp.sg import sg_integral
 
-from .light_probe import ProbeLightHead, camera_to_probe, probe_grid
+from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
-MODEL_VERSION = 5  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MODEL_VERSION = 7  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
 # fields added since an older version, with the value that reproduces the model that version trained
 MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light_head": "global"},
-              4: {"probe_start": "colour"}}
+              4: {"probe_start": "colour", "probe_samples": "texels"}, 5: {"probe_samples": "texels"}, 6: {}}
 
 
 @dataclass
@@ -69,6 +69,11 @@ class ModelConfig:
     light_head: str = "global"
     # the probe head's first light: the mirror cue's luminance (grey) or its colour (which carries the paint's)
     probe_start: str = "luminance"
+    # where the probe head reads the input: at the pixels the predicted surface covers (rasterised) or at its
+    # texels' projections (version 5; docs/experiments.md#12-the-probe-read-per-pixel)
+    probe_samples: str = "pixels"
+    # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
+    light_prior: int = 0
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -88,6 +93,8 @@ class ModelConfig:
             raise ValueError(f"light_scale must be 'log' or 'softplus', got {self.light_scale!r}")
         if self.probe_start not in ("luminance", "colour"):
             raise ValueError(f"probe_start must be 'luminance' or 'colour', got {self.probe_start!r}")
+        if self.probe_samples not in ("pixels", "texels"):
+            raise ValueError(f"probe_samples must be 'pixels' or 'texels', got {self.probe_samples!r}")
         if self.light_head not in ("global", "probe"):
             raise ValueError(f"light_head must be 'global' or 'probe', got {self.light_head!r}")
 
@@ -270,7 +277,7 @@ class Encoder(nn.Module):
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             start=c.probe_start)
+                                             start=c.probe_start, prior_components=c.light_prior)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:
@@ -367,16 +374,25 @@ class Encoder(nn.Module):
         facing = texels.facing.view(b, 1, c.texture_height, c.texture_width)
         return torch.cat([seen * (facing > 0), facing], 1)
 
-    def _probe_light(self, images: torch.Tensor, texels: "TexelView", cameras: Cameras, code: torch.Tensor) -> dict:
+    def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
+                     code: torch.Tensor) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe)."""
         b = images.shape[0]
-        seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT  # (B, T, 4)
-        radiance = conventions.srgb_to_linear((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp(0, 1))
-        weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
-        grid = probe_grid(texels.normals, texels.to_camera, radiance, weight,
-                          cameras.world_to_camera.to(images).expand(b, 4, 4), self.config.env_height,
+        if self.config.probe_samples == "pixels":
+            alpha = images[:, 3].clamp(0, 1)
+            radiance = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
+            normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
+                                                                 radiance.permute(0, 2, 3, 1), alpha)
+        else:
+            seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
+            radiance = conventions.srgb_to_linear((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp(0, 1))
+            weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
+            normals, to_camera = texels.normals, texels.to_camera
+        world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)
+        grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, self.config.env_height,
                           self.config.env_width)
-        return self.light_head(grid, code)
+        world_to_probe = camera_to_probe(images.device, images.dtype) @ world_to_camera[:, :3, :3]
+        return self.light_head(grid, code, world_to_probe.mT)
 
     def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
         """images: (B, 4, S, S) from :func:`encoder_input`; cameras: the B input views (needed by the
@@ -395,7 +411,7 @@ class Encoder(nn.Module):
         metallic = squash(mat[:, 2]) if c.predict_metallic else torch.zeros_like(mat[:, 2])
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            light = self._probe_light(images, texels, cameras, f)
+            light = self._probe_light(images, verts.detach(), texels, cameras, f)
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":

@@ -23,6 +23,7 @@ import torch
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
+from . import light_prior
 from .config import ConfigError, TrainConfig
 from .model import Encoder, ModelConfig
 
@@ -163,10 +164,16 @@ def load_run(folder: Path) -> Run:
 # ----------------------------------------------------------------------------- what a run is built from
 
 def make_model(config: TrainConfig) -> Encoder:
-    return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
+    prior = light_prior.build(Path(config.light_prior)) if config.light_prior else None
+    model = Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
                                predict_metallic=config.predict_metallic, texture=config.texture,
                                light_colour=config.light_colour, light_scale=config.light_scale,
-                               light_head=config.resolved_light_head(), probe_start=config.probe_start))
+                               light_head=config.resolved_light_head(), probe_start=config.probe_start,
+                               probe_samples=config.probe_samples,
+                                light_prior=light_prior.COMPONENTS if prior else 0))
+    if prior:
+        model.light_head.set_prior(prior)
+    return model
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:

@@ -54,6 +54,15 @@ def test_view_directions_point_back_to_the_camera():
     assert torch.allclose(v[0, 4, 4], cams.centers[0] / 7.0, atol=1e-5)
 
 
+def test_view_directions_of_a_batch_of_cameras_are_each_cameras_own():
+    cams = Cameras.orbit(7.0, 20.0, torch.tensor([40.0, 130.0, 250.0]), 50.0, 9)
+    v = cams.view_directions_world()
+    assert v.shape == (3, 9, 9, 3)
+    for k in range(3):
+        torch.testing.assert_close(v[k], cams[[k]].view_directions_world()[0])
+        torch.testing.assert_close(v[k, 4, 4], cams.centers[k] / 7.0, atol=1e-5, rtol=0)
+
+
 def test_equirect_mapping_matches_blender():
     d = torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, 1.0]])
     uv = conv.direction_to_equirect_uv(d)

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from dibrpp import Cameras
+from dibrpp import Cameras, Renderer
 from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
+from dibrpp.mesh import icosphere
 from pipelines import losses
+from pipelines.light_probe import pixel_samples
 from pipelines.model import Encoder, ModelConfig, encoder_input, squash, white_balance
 
 
@@ -149,6 +151,9 @@ def test_config_is_saved_with_the_version_and_old_checkpoints_are_refused():
     # a version-2 checkpoint (before light_scale) loads as the model it trained: softplus light scales
     v2 = {k: v for k, v in c.to_dict().items() if k != "light_scale"} | {"version": 2}
     assert ModelConfig.from_dict(v2).light_scale == "softplus"
+    # a version-5 checkpoint (before the probe read pixels) loads as the model it trained: texel samples
+    v5 = {k: v for k, v in c.to_dict().items() if k != "probe_samples"} | {"version": 5}
+    assert ModelConfig.from_dict(v5).probe_samples == "texels" and ModelConfig().probe_samples == "pixels"
     with pytest.raises(ValueError, match="texture"):
         Encoder(ModelConfig(texture="flow"))
 
@@ -203,3 +208,24 @@ def test_probe_light_starts_at_the_mirror_cue_and_places_it_in_the_world():
         pred = model(encoder_input(rgba), cams)
         env = pred.light(cams.world_to_camera).to_envmap(16, 32).image[0]
         assert env[:5].mean() > 5 * env[-5:].mean(), azimuth  # the top rows of the world map (+Z) are the bright ones
+
+
+def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
+    """The probe reads, at each pixel the predicted surface covers, the normal the renderer shades it with, the
+    direction to the camera and what the input shows there; pixels it does not cover weigh nothing."""
+    sphere = icosphere(2, radius=10.0)
+    cams = Cameras.orbit(40.0, 25.0, torch.tensor([30.0, 200.0]), 40.0, 24)
+    radiance, alpha = torch.rand(2, 24, 24, 3), torch.ones(2, 24, 24)
+    alpha[1, :, :12] = 0.0  # the input's own silhouette counts too
+    normals, to_camera, seen, weight = pixel_samples(sphere, cams, radiance, alpha)
+    shown = Renderer("sg", compile=False).render_normals(sphere, cams)
+    covered = shown.fragments.mask.reshape(2, -1) > 0
+    assert torch.equal(weight[0] > 0, covered[0])
+    assert torch.equal(weight[1] > 0, covered[1] & (alpha[1].reshape(-1) > 0))
+    torch.testing.assert_close(normals[covered], shown.rgb[..., :3].reshape(2, -1, 3)[covered], atol=1e-5, rtol=0)
+    torch.testing.assert_close(seen, radiance.reshape(2, -1, 3))
+    assert torch.allclose(to_camera.norm(dim=-1), torch.ones(()))
+    centre = 12 * 24 + 12  # the pixel below the image centre faces the camera almost squarely
+    assert ((normals[:, centre] * to_camera[:, centre]).sum(-1) > 0.95).all()
+    with pytest.raises(ValueError, match="pixels"):
+        pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
