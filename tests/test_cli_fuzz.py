@@ -75,6 +75,8 @@ CLIS = [
         zero_ok=("seed", "procedural_envmaps", "max_bounces")),
     Cli("python -m datagen.prior_maps", "datagen.prior_maps:main", ["--out", "{out}", "--no-progress"],
         ("datagen.prior_maps:generate",), paths=dict(out="dir-out"), zero_ok=("seed",)),
+    Cli("python -m pipelines.diagnose_light", "pipelines.diagnose_light:main", ["--run", "{run}"],
+        ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in")),
     Cli("python -m pipelines.light_prior", "pipelines.light_prior:main", ["--maps", "{data}"],
         ("pipelines.light_prior:build",), paths=dict(maps="dir-in")),
     Cli("python -m dibrpp render", "dibrpp.cli:main",

@@ -1,4 +1,5 @@
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -83,3 +84,22 @@ def test_the_probe_heads_sky_is_the_prior_map_that_fits_the_mirror_cue_in_the_wo
         Encoder(ModelConfig(shading="sg", light_head="probe", light_prior=20)).light_head.set_prior(prior)
     with pytest.raises(ValueError, match="MC"):
         Encoder(ModelConfig(shading="mc", light_head="probe", light_prior=4))
+
+
+def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, tmp_path, capsys):
+    from pipelines import diagnose_light, train
+    from pipelines.runs import load_run
+
+    _maps_folder(tmp_path / "maps", synthetic_maps(40))
+    out = tmp_path / "runs" / "glossy" / "sg-light-prior-seed0"
+    assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--image-size", "32", "--iterations", "2",
+                       "--light-prior", str(tmp_path / "maps"), "--out", str(out), "--no-progress"]) == 0
+    saved = load_run(out).model.light_head.prior_maps.clone()
+    shutil.rmtree(tmp_path / "maps")  # the run holds its prior
+    assert saved.abs().sum() > 0 and torch.equal(load_run(out).model.light_head.prior_maps, saved)
+    status = diagnose_light.main(["--run", str(out), "--view-stride", "2"])
+    text = capsys.readouterr()
+    assert status == 0 and "the run's sun lobe alone" in text.out, text.err
+    assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--light-prior", str(tmp_path / "maps"),
+                       "--out", str(tmp_path / "other"), "--no-progress"]) == 2
+    assert "make light-prior" in capsys.readouterr().err

@@ -1,0 +1,112 @@
+"""Where a run's light loses the sun: ``python -m pipelines.diagnose_light --run runs/metallic/sg-seed0``.
+
+On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of:
+
+- the run's light, and (probe head) its sun lobe alone, with the sun lobe's share of the light's power;
+- the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
+  a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
+  the predicted surface and through the GT mesh, from the input as the encoder sees it (sRGB, clipped at 1)
+  and at its full dynamic range;
+- (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one.
+
+Each row is a limit the light head works within; docs/experiments.md (entry 12) reads them.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+from datagen.reader import MultiViewDataset, collate
+from dibrpp import conventions
+from dibrpp.cli_args import Parser, positive_int
+from dibrpp.formatting import markdown_table
+from dibrpp.io import DataError
+from dibrpp.sg import sg_integral
+
+from . import metrics
+from .light_probe import camera_to_probe, pixel_samples, probe_grid, scatter_to_grid
+from .model import LIGHT_KINDS, encoder_input, white_balance
+from .runs import load_run, run_folder
+
+
+def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
+    """(B, 3) dominant direction of the mirror cue of ``meshes`` seen by ``cameras`` in the world frame."""
+    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
+    mirror = torch.nn.functional.normalize(2 * (normals * to_camera).sum(-1, keepdim=True) * normals - to_camera, dim=-1)
+    mean, cover = scatter_to_grid(mirror, seen, weight, 32, 64)
+    return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+
+
+def diagnose(run: Path, stride: int = 3) -> list[list]:
+    loaded = load_run(run)
+    model, config = loaded.model, loaded.config
+    probe = model.config.light_head == "probe"
+    ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
+    views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
+    errors, shares = {}, []
+    with torch.no_grad():
+        for start in range(0, len(views), 16):
+            b = collate([ds[i] for i in views[start:start + 16]])
+            rgba, cams, env = b["image"][:, 0], b["cameras"], b["envmap"]
+            d_gt, frac = metrics.dominant_direction(env)
+            sunny = frac >= metrics.SUN_FRACTION
+            images = encoder_input(rgba)
+            pred = model(images, cams)
+            gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
+            clipped = conventions.srgb_to_linear(conventions.linear_to_srgb(rgba[..., :3]))
+            found = {"the run's light": metrics.dominant_direction(pred.light(cams.world_to_camera).to_envmap(64, 128).image)[0]}
+            for surface in ("predicted", "GT"):
+                for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
+                    if surface == "predicted":
+                        d = cue_direction(pred.meshes(), cams, radiance, rgba[..., 3])
+                    else:
+                        d = torch.cat([cue_direction(m, cams[[k]], radiance[k:k + 1], rgba[k:k + 1, ..., 3])
+                                       for k, m in enumerate(gt_meshes)])
+                    found[f"mirror cue, {surface} surface, {name} input"] = d
+            if probe and LIGHT_KINDS[config.shading] == "sg":
+                p = pred.light_params
+                world_to_probe = camera_to_probe() @ cams.world_to_camera[:, :3, :3]
+                found["the run's sun lobe alone"] = p["axis"][:, -1] @ world_to_probe  # rows: probe -> world
+                power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
+                shares.append((power[:, -1] / power.sum(1))[sunny])
+                f = model.fc(model.backbone(model.stem(images)))
+                alpha = images[:, 3]
+                radiance = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
+                samples = [pixel_samples(m, cams[[k]], radiance[k:k + 1].permute(0, 2, 3, 1), alpha[k:k + 1])
+                           for k, m in enumerate(gt_meshes)]
+                grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cams.world_to_camera,
+                                  model.config.env_height, model.config.env_width)
+                light = white_balance(model.light_head(grid, f, world_to_probe.mT), "sg", model.config.env_height)
+                d = metrics.dominant_direction(pred.with_light(light).light(cams.world_to_camera).to_envmap(64, 128).image)[0]
+                found["the run's head fed the cue through the GT mesh"] = d
+            for k, d in found.items():
+                errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
+    rows = []
+    for k, v in errors.items():
+        v = torch.cat(v)
+        if not len(v):
+            raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
+        rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
+    if shares:
+        rows.append(["(the sun lobe's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m pipelines.diagnose_light", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", required=True, metavar="DIR", help="a run folder")
+    ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
+                    help="every N-th test view of each object, as make eval (default: 3)")
+    args = ap.parse_args(argv)
+    try:
+        rows = diagnose(run_folder(Path(args.run)), args.view_stride)
+    except DataError as e:
+        ap.error(str(e))
+    print(markdown_table(["sunny test views", "direction median (°)", "≤ 25°", "≤ 45°"], rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
