@@ -23,9 +23,11 @@ import torch
 
 from dibrpp import conventions
 from dibrpp.cli_args import Parser, positive_int
+from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, atomic_path
 
 PRIOR_FILE = "prior.pt"
+FIGURE_FILE = "components.png"
 COMPONENTS = 16
 HEIGHT, WIDTH = 16, 32  # the probe head's grid
 SUN_CLIP = 8.0  # cells brighter than this many times the map's median are clipped to it (the sun's share)
@@ -98,6 +100,19 @@ def build(folder: Path, components: int = COMPONENTS) -> dict:
     return prior
 
 
+def write_figure(prior: dict, path: Path, shown: int = 5) -> Path:
+    """The mean log-luminance map and the first components (each times its spread), world frame, +Z on top."""
+    plt = pyplot()
+    maps = [prior["mean"]] + [prior["basis"][k] * prior["std"][k] for k in range(min(shown, len(prior["std"])))]
+    fig, axes = plt.subplots(1, len(maps), figsize=(3 * len(maps), 2.0))
+    for k, (ax, m) in enumerate(zip(axes, maps)):
+        lim = float(m.abs().max())
+        ax.imshow(m.view(HEIGHT, WIDTH).numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim)
+        ax.set_title("mean" if k == 0 else f"component {k} (x its std. dev.)", fontsize=9)
+        ax.axis("off")
+    return save_figure(fig, path, dpi=80)
+
+
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.light_prior",
                 description="fit the light prior (log-luminance PCA) to the env maps of datagen.prior_maps")
@@ -111,9 +126,10 @@ def main(argv=None) -> int:
         prior = build(Path(args.maps), args.components)
     except DataError as e:
         ap.error(str(e))
+    write_figure(prior, Path(args.maps) / FIGURE_FILE)
     explained = ", ".join(f"{k}: {100 * float(prior['explained'][k - 1]):.0f} %" for k in (1, 2, 4, 8, len(prior["std"])))
     print(f"light prior: {len(prior['std'])} components of {HEIGHT} x {WIDTH} log luminance; variance explained by "
-          f"the first {explained}; cached in {Path(args.maps) / PRIOR_FILE}")
+          f"the first {explained}; cached in {Path(args.maps) / PRIOR_FILE} (figure: {FIGURE_FILE})")
     return 0
 
 
