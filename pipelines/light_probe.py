@@ -127,7 +127,9 @@ class ProbeLightHead(nn.Module):
 
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
-    starting at the mirror cue's brightest region) with its own sharpness and intensity."""
+    starting at the mirror cue's brightest region) with its own sharpness and intensity. With a light prior
+    (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
+    fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
                  max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
