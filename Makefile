@@ -116,6 +116,7 @@ train-ablations: $(VENV)/.installed
 # `python -m pipelines.train --list-variants`), each into runs/<dataset>/sg-<variant>-seed<s>.
 VARIANT_KINDS ?= ablation,diagnostic
 train-variants: $(VENV)/.installed
+	@$(MAKE) --no-print-directory light-prior  # the light-prior variant's maps (done and cached after the first time)
 	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=$(VARIANT_KINDS)
 
 train-variant-runs: $(VENV)/.installed

@@ -45,6 +45,11 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light
               4: {"probe_start": "colour", "probe_samples": "texels"}, 5: {"probe_samples": "texels"}, 6: {}}
 
 
+# the allowed values of the model's string options
+CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
+           "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe")}
+
+
 @dataclass
 class ModelConfig:
     shading: str = "sg"  # mc | sg | sh | sh-sg
@@ -85,18 +90,9 @@ class ModelConfig:
             raise ValueError(f"unknown shading {self.shading!r}; choose from {sorted(LIGHT_KINDS)}")
         if self.image_size % 16:
             raise ValueError(f"image_size must be a multiple of 16, got {self.image_size}")
-        if self.texture not in ("projected", "global"):
-            raise ValueError(f"texture must be 'projected' or 'global', got {self.texture!r}")
-        if self.light_colour not in ("white", "free"):
-            raise ValueError(f"light_colour must be 'white' or 'free', got {self.light_colour!r}")
-        if self.light_scale not in ("log", "softplus"):
-            raise ValueError(f"light_scale must be 'log' or 'softplus', got {self.light_scale!r}")
-        if self.probe_start not in ("luminance", "colour"):
-            raise ValueError(f"probe_start must be 'luminance' or 'colour', got {self.probe_start!r}")
-        if self.probe_samples not in ("pixels", "texels"):
-            raise ValueError(f"probe_samples must be 'pixels' or 'texels', got {self.probe_samples!r}")
-        if self.light_head not in ("global", "probe"):
-            raise ValueError(f"light_head must be 'global' or 'probe', got {self.light_head!r}")
+        for name, allowed in CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
