@@ -47,13 +47,13 @@ def chunk_path(out: Path, k: int) -> Path:
     return out / f"maps_{k:04d}.npy"
 
 
-def make_chunk(out: Path, k: int, height: int, seed: int, spp: int) -> int:
-    """Render chunk ``k`` (in a worker) and write it."""
+def make_chunk(out: Path, k: int, height: int, seed: int, spp: int, chunk: int = CHUNK) -> int:
+    """Render chunk ``k`` (maps k * chunk ... (k + 1) * chunk - 1, in a worker) and write it."""
     from .envmaps import make_envmap
     from .workers import exit_if_orphaned
 
     maps = []
-    for i in range(k * CHUNK, (k + 1) * CHUNK):
+    for i in range(k * chunk, (k + 1) * chunk):
         rng = np.random.default_rng(np.random.SeedSequence([seed, SEED_STREAM, i]))
         kind = "outdoor" if rng.random() < OUTDOOR_SHARE else "indoor"
         env, _ = make_envmap(kind, rng, height, 2 * height, spp=spp, threads=1)
@@ -66,10 +66,10 @@ def make_chunk(out: Path, k: int, height: int, seed: int, spp: int) -> int:
 
 
 def generate(out: Path, count: int, height: int = 32, seed: int = 0, spp: int = 16, workers: int = 2,
-             progress: bool = True) -> None:
+             progress: bool = True, chunk: int = CHUNK) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    chunks = -(-count // CHUNK)
-    manifest = {"count": chunks * CHUNK, "height": height, "seed": seed, "spp": spp, "chunk": CHUNK,
+    chunks = -(-count // chunk)
+    manifest = {"count": chunks * chunk, "height": height, "seed": seed, "spp": spp, "chunk": chunk,
                 "generator": generator_digest()}
     path = out / MANIFEST
     if path.exists():
@@ -85,8 +85,8 @@ def generate(out: Path, count: int, height: int = 32, seed: int = 0, spp: int = 
 
     with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=init_worker,
                              initargs=(1, os.getpid())) as pool:
-        jobs = [pool.submit(make_chunk, out, k, height, seed, spp) for k in todo]
-        for job in tqdm(as_completed(jobs), total=len(jobs), desc=f"env maps for the light prior ({CHUNK} per chunk)",
+        jobs = [pool.submit(make_chunk, out, k, height, seed, spp, chunk) for k in todo]
+        for job in tqdm(as_completed(jobs), total=len(jobs), desc=f"env maps for the light prior ({chunk} per chunk)",
                         disable=not progress):
             job.result()
 

@@ -44,10 +44,11 @@ def read_maps(folder: Path) -> tuple[np.ndarray, dict]:
         raise DataError(f"{folder}: no env maps for the light prior; make them with `make light-prior`") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataError(f"{folder / 'manifest.json'}: not a manifest of env maps ({e}); rebuild with `make light-prior`") from None
-    chunks = sorted(folder.glob("maps_*.npy"))
     expected = manifest["count"] // manifest["chunk"]
-    if len(chunks) < expected:
-        raise DataError(f"{folder}: {len(chunks)} of {expected} chunks of maps; finish them with `make light-prior`")
+    chunks = [folder / f"maps_{k:04d}.npy" for k in range(expected)]  # as datagen.prior_maps names them
+    done = sum(c.exists() for c in chunks)
+    if done < expected:
+        raise DataError(f"{folder}: {done} of {expected} chunks of maps; finish them with `make light-prior`")
     return np.concatenate([np.load(c) for c in chunks]), manifest
 
 
@@ -76,7 +77,7 @@ def fit(maps: np.ndarray, components: int = COMPONENTS, seed: int = 0) -> dict:
     shifts = torch.randint(0, WIDTH, (len(x), TURNS), generator=g)
     x = torch.stack([torch.roll(x[i], int(s), dims=1) for i in range(len(x)) for s in shifts[i]]).flatten(1)
     w = solid_angle_weights(x.dtype)
-    mean = (x * 1).mean(0)
+    mean = x.mean(0)
     _, s, vt = torch.linalg.svd((x - mean) * w.sqrt(), full_matrices=False)
     basis = vt[:components] / w.sqrt()  # orthonormal under sum(w * a * b)
     variance = s ** 2 / (len(x) - 1)

@@ -75,7 +75,7 @@ class ModelConfig:
     # the probe head's first light: the mirror cue's luminance (grey) or its colour (which carries the paint's)
     probe_start: str = "luminance"
     # where the probe head reads the input: at the pixels the predicted surface covers (rasterised) or at its
-    # texels' projections (version 5; docs/experiments.md#12-the-probe-read-per-pixel)
+    # texels' projections (version 5; docs/experiments.md, entry 12)
     probe_samples: str = "pixels"
     # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
     light_prior: int = 0

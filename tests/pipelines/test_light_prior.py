@@ -103,3 +103,21 @@ def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, 
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--light-prior", str(tmp_path / "maps"),
                        "--out", str(tmp_path / "other"), "--no-progress"]) == 2
     assert "make light-prior" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_prior_maps_are_rendered_resumably_and_refuse_other_settings(tmp_path):
+    """Real Cycles renders (tiny maps): chunks and a manifest; a rerun renders nothing new; another seed into the
+    same folder is refused; the maps are HDR skies and rooms the prior can be fitted to."""
+    from datagen.prior_maps import generate
+
+    out = tmp_path / "maps"
+    generate(out, count=4, height=8, spp=2, workers=1, progress=False, chunk=2)
+    first = {p.name: p.stat().st_mtime_ns for p in out.glob("maps_*.npy")}
+    assert sorted(first) == ["maps_0000.npy", "maps_0001.npy"]
+    generate(out, count=4, height=8, spp=2, workers=1, progress=False, chunk=2)
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("maps_*.npy")} == first
+    with pytest.raises(DataError, match="other settings"):
+        generate(out, count=4, height=8, seed=1, spp=2, workers=1, progress=False, chunk=2)
+    maps, manifest = light_prior.read_maps(out)
+    assert maps.shape == (4, 8, 16, 3) and manifest["count"] == 4 and (maps > 0).all() and np.isfinite(maps).all()
