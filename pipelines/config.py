@@ -59,8 +59,6 @@ class TrainConfig:
                             ("luminance", "colour"))
     probe_samples: str = _opt("pixels", "where the probe head reads the input: the pixels the predicted surface "
                               "covers (rasterised) or its texels' projections", ("pixels", "texels"))
-    template_subdivisions: int = _opt(3, "subdivisions of the template sphere the shape deforms (3: 642 vertices, "
-                                      "4: 2562)", (2, 3, 4))
     light_prior: str = _opt("", "folder of env maps whose log-luminance PCA the probe head's SG sky lives in "
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
@@ -215,8 +213,6 @@ VARIANTS: dict[str, Variant] = {
                             {"light_head": "probe", "probe_samples": "texels"}, runs=(("metallic", 0),)),
     "light-prior": Variant("the probe head's SG sky in a prior learned from 2000 procedural env maps (log-PCA, 16)",
                            {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
-    "fine-template": Variant("a template sphere with 2562 vertices instead of 642, for finer normals",
-                             {"template_subdivisions": 4}, runs=(("metallic", 0),)),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

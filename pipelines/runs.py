@@ -167,7 +167,6 @@ def make_model(config: TrainConfig) -> Encoder:
     prior = light_prior.build(Path(config.light_prior)) if config.light_prior else None
     model = Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
                                predict_metallic=config.predict_metallic, texture=config.texture,
-                               template_subdivisions=config.template_subdivisions,
                                light_colour=config.light_colour, light_scale=config.light_scale,
                                light_head=config.resolved_light_head(), probe_start=config.probe_start,
                                probe_samples=config.probe_samples,
