@@ -27,7 +27,7 @@ from dibrpp.sg import sg_integral
 
 from . import metrics
 from .light_probe import camera_to_probe, pixel_samples, probe_grid, scatter_to_grid
-from .model import LIGHT_KINDS, encoder_input, white_balance
+from .model import LIGHT_KINDS, encoder_input, input_radiance, white_balance
 from .runs import load_run, run_folder
 
 
@@ -37,6 +37,18 @@ def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     mirror = torch.nn.functional.normalize(2 * (normals * to_camera).sum(-1, keepdim=True) * normals - to_camera, dim=-1)
     mean, cover = scatter_to_grid(mirror, seen, weight, 32, 64)
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+
+
+def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:
+    """The probe head's SG light when its grid is read through the GT meshes instead of the predicted ones."""
+    code = model.fc(model.backbone(model.stem(images)))
+    radiance, alpha = input_radiance(images)
+    samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
+    grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, model.config.env_height,
+                      model.config.env_width)
+    world_to_probe = camera_to_probe() @ cameras.world_to_camera[:, :3, :3]
+    light = model.light_head(grid, code, world_to_probe.mT)
+    return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 
 def diagnose(run: Path, stride: int = 3) -> list[list]:
@@ -71,14 +83,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
                 found["the run's sun lobe alone"] = p["axis"][:, -1] @ world_to_probe  # rows: probe -> world
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
                 shares.append((power[:, -1] / power.sum(1))[sunny])
-                f = model.fc(model.backbone(model.stem(images)))
-                alpha = images[:, 3]
-                radiance = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
-                samples = [pixel_samples(m, cams[[k]], radiance[k:k + 1].permute(0, 2, 3, 1), alpha[k:k + 1])
-                           for k, m in enumerate(gt_meshes)]
-                grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cams.world_to_camera,
-                                  model.config.env_height, model.config.env_width)
-                light = white_balance(model.light_head(grid, f, world_to_probe.mT), "sg", model.config.env_height)
+                light = head_on_gt_cue(model, images, cams, gt_meshes)
                 d = metrics.dominant_direction(pred.with_light(light).light(cams.world_to_camera).to_envmap(64, 128).image)[0]
                 found["the run's head fed the cue through the GT mesh"] = d
             for k, d in found.items():

@@ -118,6 +118,14 @@ def encoder_input(rgba: torch.Tensor) -> torch.Tensor:
     return torch.cat([rgb, rgba[..., 3:]], -1).permute(0, 3, 1, 2)
 
 
+def input_radiance(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """What :func:`encoder_input` images show: linear radiance (B, H, W, 3), clipped at 1 as the encoder sees it,
+    and alpha (B, H, W)."""
+    alpha = images[:, 3].clamp(0, 1)
+    rgb = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
+    return rgb.permute(0, 2, 3, 1), alpha
+
+
 def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.05) -> torch.Tensor:
     """A sigmoid onto [lo, hi] that reaches both ends at finite x (it overshoots by ``margin`` and is clamped)."""
     t = (1 + 2 * margin) * torch.sigmoid(x) - margin
@@ -375,10 +383,8 @@ class Encoder(nn.Module):
         """The light read from the input through the predicted surface (pipelines.light_probe)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
-            alpha = images[:, 3].clamp(0, 1)
-            radiance = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
             normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
-                                                                 radiance.permute(0, 2, 3, 1), alpha)
+                                                                 *input_radiance(images))
         else:
             seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
             radiance = conventions.srgb_to_linear((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp(0, 1))
