@@ -15,6 +15,9 @@ import typing
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 
+SG_LIGHT = ("sg", "sh-sg")  # the shadings lit by SG lobes
+
+
 class ConfigError(ValueError):
     """A configuration that cannot be trained: the message names the field and what to do."""
 
@@ -105,7 +108,7 @@ class TrainConfig:
         if self.shading == "sh" and self.light_head == "probe":
             raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
                               "(or auto) with --shading sh")
-        if self.light_prior and (self.shading not in ("sg", "sh-sg") or self.resolved_light_head() != "probe"):
+        if self.light_prior and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_prior shapes the probe head's SG sky; use it with --shading sg or sh-sg and the "
                               "probe light head")
         if self.variant and self.variant not in VARIANTS:
@@ -142,7 +145,7 @@ class TrainConfig:
         (SG lobes: sg, sh-sg), the paper's global head elsewhere (MC's env map: not measured yet; SH baseline)."""
         if self.light_head != "auto":
             return self.light_head
-        return "probe" if self.shading in ("sg", "sh-sg") else "global"
+        return "probe" if self.shading in SG_LIGHT else "global"
 
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its

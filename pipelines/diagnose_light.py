@@ -26,7 +26,7 @@ from dibrpp.io import DataError
 from dibrpp.sg import sg_integral
 
 from . import metrics
-from .light_probe import camera_to_probe, pixel_samples, probe_grid, scatter_to_grid
+from .light_probe import camera_to_probe, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
 from .model import LIGHT_KINDS, encoder_input, input_radiance, white_balance
 from .runs import load_run, run_folder
 
@@ -34,8 +34,7 @@ from .runs import load_run, run_folder
 def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     """(B, 3) dominant direction of the mirror cue of ``meshes`` seen by ``cameras`` in the world frame."""
     normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
-    mirror = torch.nn.functional.normalize(2 * (normals * to_camera).sum(-1, keepdim=True) * normals - to_camera, dim=-1)
-    mean, cover = scatter_to_grid(mirror, seen, weight, 32, 64)
+    mean, cover = scatter_to_grid(mirror_directions(normals, to_camera), seen, weight, 32, 64)
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
 
 

@@ -35,8 +35,8 @@ TURNS = 8  # random turns about the vertical per map
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
-def read_maps(folder: Path) -> tuple[np.ndarray, dict]:
-    """(N, H, 2H, 3) maps and the manifest of a :mod:`datagen.prior_maps` folder."""
+def read_manifest(folder: Path) -> tuple[dict, list[Path]]:
+    """The manifest of a :mod:`datagen.prior_maps` folder and its chunk files, all of them present."""
     folder = Path(folder)
     try:
         manifest = json.loads((folder / "manifest.json").read_text())
@@ -49,6 +49,12 @@ def read_maps(folder: Path) -> tuple[np.ndarray, dict]:
     done = sum(c.exists() for c in chunks)
     if done < expected:
         raise DataError(f"{folder}: {done} of {expected} chunks of maps; finish them with `make light-prior`")
+    return manifest, chunks
+
+
+def read_maps(folder: Path) -> tuple[np.ndarray, dict]:
+    """(N, H, 2H, 3) maps and the manifest of a :mod:`datagen.prior_maps` folder."""
+    manifest, chunks = read_manifest(folder)
     return np.concatenate([np.load(c) for c in chunks]), manifest
 
 
@@ -86,16 +92,16 @@ def fit(maps: np.ndarray, components: int = COMPONENTS, seed: int = 0) -> dict:
 
 
 def build(folder: Path, components: int = COMPONENTS) -> dict:
-    """The prior of the maps in ``folder``: read from its cache, or fitted and cached."""
+    """The prior of the maps in ``folder``: read from its cache (the maps are not read), or fitted and cached."""
     folder = Path(folder)
-    maps, manifest = read_maps(folder)
+    manifest, _ = read_manifest(folder)
     key = {"manifest": manifest, "components": components, "sun_clip": SUN_CLIP, "grid": [HEIGHT, WIDTH], "turns": TURNS}
     cache = folder / PRIOR_FILE
     if cache.exists():
         prior = torch.load(cache, weights_only=True)
         if prior.get("key") == json.dumps(key, sort_keys=True):
             return prior
-    prior = {**fit(maps, components), "key": json.dumps(key, sort_keys=True)}
+    prior = {**fit(read_maps(folder)[0], components), "key": json.dumps(key, sort_keys=True)}
     with atomic_path(cache) as tmp:
         torch.save(prior, tmp)
     return prior

@@ -93,14 +93,18 @@ def pixel_samples(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor,
     return dense(normal), dense(view), radiance.reshape(b, -1, 3), weight
 
 
+def mirror_directions(normals: torch.Tensor, to_camera: torch.Tensor) -> torch.Tensor:
+    """Unit directions r = 2(n.v)n - v from which a mirror at normals n shows light to the camera (v: to it)."""
+    return F.normalize(2 * (normals * to_camera).sum(-1, keepdim=True) * normals - to_camera, dim=-1, eps=1e-12)
+
+
 def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tensor, weight: torch.Tensor,
                world_to_camera: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """(B, 8, H, W) probe-frame grid: mirror-cue radiance (3) and coverage (1), diffuse-cue radiance (3) and
     coverage (1). normals, to_camera (B, N, 3) world-frame unit vectors of N surface points; seen (B, N, 3) the
     linear radiance the input shows there; weight (B, N) how much each point counts (0: not seen)."""
     rot = camera_to_probe(normals.device, normals.dtype) @ world_to_camera[:, :3, :3].to(normals.dtype)  # world -> probe
-    n_dot_v = (normals * to_camera).sum(-1, keepdim=True)
-    mirror = F.normalize(2 * n_dot_v * normals - to_camera, dim=-1, eps=1e-12)
+    mirror = mirror_directions(normals, to_camera)
     to_probe = lambda d: d @ rot.mT  # noqa: E731 (row vectors)
     mirror_mean, mirror_cover = scatter_to_grid(to_probe(mirror), seen, weight, height, width)
     normal_mean, normal_cover = scatter_to_grid(to_probe(normals), seen, weight, height, width)

@@ -403,7 +403,7 @@ class Encoder(nn.Module):
         stem = self.stem(images)
         f = self.fc(self.backbone(stem))
         verts = self._shape(self.shape_head(f))
-        needs_texels = c.texture == "projected" or c.light_head == "probe"
+        needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
         texture, facing = self._texture(f, stem, images, texels)
         mat = self.material_head(f)

@@ -42,14 +42,9 @@ def say(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def load_input(path, size: int, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
-    """(size, size, 4) linear RGB + alpha from an image file, padded to a square and resized; see the module
-    doc for RGB inputs."""
-    return resize_input(read_input(path, background, tolerance), size)
-
-
 def read_input(path, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
-    """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it."""
+    """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it (see the module
+    doc for RGB inputs)."""
     img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
     height, width = img.shape[:2]
     if min(height, width) < MIN_SIDE:
