@@ -40,6 +40,7 @@ def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
 
 def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:
     """The probe head's SG light when its grid is read through the GT meshes instead of the predicted ones."""
+    images = model.visible_input(images)
     code = model.fc(model.backbone(model.stem(images)))
     radiance, alpha = input_radiance(images)
     samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]

@@ -29,7 +29,7 @@ from dibrpp.renderer import bend_towards_view
 
 # camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
-LOG_EPS = 1e-3  # radiance floor of the grid's log (the input is sRGB in [0, 1] decoded to linear)
+LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest step is ~3e-4 linear)
 BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
 # light_prior: how strongly the prior's components are held to their spread when fitted to the mirror cue
 PRIOR_STRENGTH = 0.1
@@ -109,6 +109,14 @@ def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tenso
     mirror_mean, mirror_cover = scatter_to_grid(to_probe(mirror), seen, weight, height, width)
     normal_mean, normal_cover = scatter_to_grid(to_probe(normals), seen, weight, height, width)
     return torch.cat([mirror_mean, mirror_cover, normal_mean, normal_cover], 1)
+
+
+def compress_radiance(grid: torch.Tensor) -> torch.Tensor:
+    """The grid as the head's CNN reads it: radiance linear up to 1 (all a clipped input holds), logarithmic above
+    (1 + ln x), so a full-range input's sun reflection (~1e4) enters as ~10; coverage channels as they are."""
+    radiance = grid[:, [0, 1, 2, 4, 5, 6]]
+    radiance = torch.where(radiance > 1, 1 + torch.log(radiance.clamp_min(1.0)), radiance)
+    return torch.cat([radiance[:, :3], grid[:, 3:4], radiance[:, 3:], grid[:, 7:8]], 1)
 
 
 def fibonacci_axes(k: int) -> torch.Tensor:
@@ -212,7 +220,7 @@ class ProbeLightHead(nn.Module):
         """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
         rotation from the probe frame to the world's (needed by the light prior, which lives in the world)."""
         b = grid.shape[0]
-        x = torch.cat([grid, self.cell_dirs.expand(b, -1, -1, -1)], 1)
+        x = torch.cat([compress_radiance(grid), self.cell_dirs.expand(b, -1, -1, -1)], 1)
         h = F.leaky_relu(self._conv(self.inp, x), 0.2)
         scale, shift = self.film(code).view(b, 2, -1, 1, 1).unbind(1)
         h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)

@@ -37,17 +37,23 @@ from dibrpp.sg import sg_integral
 from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
-MODEL_VERSION = 7  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MODEL_VERSION = 8  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
 # fields added since an older version, with the value that reproduces the model that version trained
-MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global"}, 3: {"light_head": "global"},
-              4: {"probe_start": "colour", "probe_samples": "texels"}, 5: {"probe_samples": "texels"}, 6: {}}
+_CLIPPED = {"input_range": "clipped"}
+MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}, 3: {"light_head": "global", **_CLIPPED},
+              4: {"probe_start": "colour", "probe_samples": "texels", **_CLIPPED},
+              5: {"probe_samples": "texels", **_CLIPPED}, 6: _CLIPPED, 7: _CLIPPED}
+# above radiance 1 the encoder's colour grows as 1 + ln(x) / HDR_LOG_SCALE (about the sRGB curve's slope at 1),
+# so a sun's reflection (~1e4) reads ~4.8 where a clipped picture shows 1
+HDR_LOG_SCALE = 2.4
 
 
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
-           "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe")}
+           "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
+           "input_range": ("clipped", "full")}
 
 
 @dataclass
@@ -79,6 +85,9 @@ class ModelConfig:
     probe_samples: str = "pixels"
     # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
     light_prior: int = 0
+    # what the encoder sees of the input: clipped at 1, as an 8-bit picture shows it, or its full range (an EXR's
+    # sun reflections; :func:`encoder_input`)
+    input_range: str = "clipped"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -112,17 +121,35 @@ class ModelConfig:
         return cls(**{k: tuple(v) if k in tuples else v for k, v in d.items() if k in names})
 
 
+def encode_colour(radiance: torch.Tensor) -> torch.Tensor:
+    """Linear radiance -> the encoder's colour: sRGB up to 1, logarithmic above (1 + ln(x) / HDR_LOG_SCALE)."""
+    hdr = 1 + torch.log(radiance.clamp_min(1.0)) / HDR_LOG_SCALE
+    return torch.where(radiance > 1, hdr, conventions.linear_to_srgb(radiance))
+
+
+def decode_colour(colour: torch.Tensor) -> torch.Tensor:
+    """The inverse of :func:`encode_colour` (colours up to 1 decode as sRGB, clamped at 0)."""
+    hdr = torch.exp((colour.clamp_min(1.0) - 1) * HDR_LOG_SCALE)
+    return torch.where(colour > 1, hdr, conventions.srgb_to_linear(colour))
+
+
 def encoder_input(rgba: torch.Tensor) -> torch.Tensor:
-    """What the encoder sees: (B, H, W, 4) linear RGBA -> (B, 4, H, W) sRGB-encoded colour on black, alpha."""
-    rgb = conventions.linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]
+    """The encoder's input: (B, H, W, 4) linear RGBA -> (B, 4, H, W) colour (:func:`encode_colour`, full range) on
+    black, alpha. A clipped-input model clips it itself (:func:`clip_input`)."""
+    rgb = encode_colour(rgba[..., :3]) * rgba[..., 3:]
     return torch.cat([rgb, rgba[..., 3:]], -1).permute(0, 3, 1, 2)
 
 
+def clip_input(images: torch.Tensor) -> torch.Tensor:
+    """:func:`encoder_input` images as an 8-bit picture shows them: radiance clipped at 1."""
+    one = conventions.linear_to_srgb(images.new_ones(()))
+    return torch.cat([torch.minimum(images[:, :3], images[:, 3:] * one), images[:, 3:]], 1)
+
+
 def input_radiance(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """What :func:`encoder_input` images show: linear radiance (B, H, W, 3), clipped at 1 as the encoder sees it,
-    and alpha (B, H, W)."""
+    """What :func:`encoder_input` images show: linear radiance (B, H, W, 3) and alpha (B, H, W)."""
     alpha = images[:, 3].clamp(0, 1)
-    rgb = conventions.srgb_to_linear((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp(0, 1))
+    rgb = decode_colour((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp_min(0))
     return rgb.permute(0, 2, 3, 1), alpha
 
 
@@ -387,7 +414,7 @@ class Encoder(nn.Module):
                                                                  *input_radiance(images))
         else:
             seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
-            radiance = conventions.srgb_to_linear((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp(0, 1))
+            radiance = decode_colour((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp_min(0))
             weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
             normals, to_camera = texels.normals, texels.to_camera
         world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)
@@ -396,10 +423,15 @@ class Encoder(nn.Module):
         world_to_probe = camera_to_probe(images.device, images.dtype) @ world_to_camera[:, :3, :3]
         return self.light_head(grid, code, world_to_probe.mT)
 
+    def visible_input(self, images: torch.Tensor) -> torch.Tensor:
+        """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""
+        return images if self.config.input_range == "full" else clip_input(images)
+
     def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
         """images: (B, 4, S, S) from :func:`encoder_input`; cameras: the B input views (needed by the
         projected texture and the probe light head)."""
         c = self.config
+        images = self.visible_input(images)
         stem = self.stem(images)
         f = self.fc(self.backbone(stem))
         verts = self._shape(self.shape_head(f))

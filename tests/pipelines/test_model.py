@@ -12,7 +12,9 @@ from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines import losses
 from pipelines.light_probe import pixel_samples
-from pipelines.model import Encoder, ModelConfig, encoder_input, squash, white_balance
+from pipelines.light_probe import compress_radiance
+from pipelines.model import (Encoder, ModelConfig, clip_input, decode_colour, encode_colour, encoder_input,
+                             input_radiance, squash, white_balance)
 
 
 def _cams(n, size=32):
@@ -154,6 +156,9 @@ def test_config_is_saved_with_the_version_and_old_checkpoints_are_refused():
     # a version-5 checkpoint (before the probe read pixels) loads as the model it trained: texel samples
     v5 = {k: v for k, v in c.to_dict().items() if k != "probe_samples"} | {"version": 5}
     assert ModelConfig.from_dict(v5).probe_samples == "texels" and ModelConfig().probe_samples == "pixels"
+    # a version-7 checkpoint (before the full-range input) loads as the model it trained: clipped input
+    v7 = {k: v for k, v in c.to_dict().items() if k != "input_range"} | {"version": 7}
+    assert ModelConfig.from_dict(v7).input_range == "clipped"
     with pytest.raises(ValueError, match="texture"):
         Encoder(ModelConfig(texture="flow"))
 
@@ -164,6 +169,41 @@ def test_encoder_input_is_srgb_on_black_with_alpha():
     assert x.shape == (2, 4, 16, 16)
     assert torch.allclose(x[:, :3], (linear_to_srgb(rgba[..., :3]) * rgba[..., 3:]).permute(0, 3, 1, 2))
     assert torch.equal(x[:, 3], rgba[..., 3])
+
+
+def test_full_range_input_keeps_the_sun_and_clipping_gives_the_8_bit_picture():
+    x = torch.cat([torch.linspace(0, 1, 257), torch.logspace(0, 5, 100)])
+    colour = encode_colour(x)
+    assert (colour[1:] >= colour[:-1]).all() and float(colour.max()) < 6  # monotone, a sun ~1e4 reads < 6
+    assert torch.allclose(decode_colour(colour), x, rtol=1e-5, atol=1e-6)
+    torch.manual_seed(0)
+    rgba = torch.rand(3, 16, 16, 4)
+    rgba[..., :3] = rgba[..., :3] * torch.logspace(-1, 4, 16).view(1, 16, 1, 1)  # radiance up to 1e4
+    rgba[0, ..., 3] = 1.0
+    images = encoder_input(rgba)
+    # clipped: bit for bit what the encoder saw before it could see the full range
+    old = torch.cat([linear_to_srgb(rgba[..., :3]) * rgba[..., 3:], rgba[..., 3:]], -1).permute(0, 3, 1, 2)
+    assert torch.equal(clip_input(images), old)
+    radiance, alpha = input_radiance(images)
+    assert torch.allclose(radiance[0], rgba[0, ..., :3], rtol=1e-4)  # the full range comes back where alpha is 1
+    assert float(input_radiance(clip_input(images))[0].max()) <= 1.0
+    # a clipped model sees the same input either way; a full-range one sees the sun
+    cams = _cams(3, 16)
+    for input_range in ("clipped", "full"):
+        torch.manual_seed(1)
+        model = Encoder(ModelConfig(image_size=16, light_head="probe", input_range=input_range))
+        a, b = model(images, cams), model(clip_input(images), cams)
+        same = all(torch.equal(a.light_params[k], b.light_params[k]) for k in a.light_params)
+        assert same == (input_range == "clipped")
+
+
+def test_the_probe_head_reads_radiance_linear_to_1_and_logarithmic_above():
+    grid = torch.rand(2, 8, 4, 8)
+    assert torch.equal(compress_radiance(grid), grid)
+    grid[:, [0, 5]] = 1e4
+    squeezed = compress_radiance(grid)
+    assert torch.allclose(squeezed[:, [0, 5]], torch.tensor(1 + math.log(1e4)))
+    assert torch.equal(squeezed[:, [3, 7]], grid[:, [3, 7]])  # coverage untouched
 
 
 # ----------------------------------------------------------------------------- losses
