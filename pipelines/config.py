@@ -64,8 +64,8 @@ class TrainConfig:
                               "covers (rasterised) or its texels' projections", ("pixels", "texels"))
     light_prior: str = _opt("", "folder of env maps whose log-luminance PCA the probe head's SG sky lives in "
                             "(pipelines.light_prior; `make light-prior`); '' for none")
-    input_range: str = _opt("clipped", "what the encoder sees of a training image: clipped at 1 (an 8-bit picture) "
-                            "or its full range (the dataset's EXR, sun reflections included)", ("clipped", "full"))
+    input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
+                            "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
@@ -218,8 +218,8 @@ VARIANTS: dict[str, Variant] = {
                             {"light_head": "probe", "probe_samples": "texels"}, runs=(("metallic", 0),)),
     "light-prior": Variant("the probe head's SG sky in a prior learned from 2000 procedural env maps (log-PCA, 16)",
                            {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
-    "hdr-input": Variant("the encoder sees the input's full range (EXR) instead of an 8-bit picture's clipped one",
-                         {"input_range": "full"}, runs=(("metallic", 0), ("glossy", 0))),
+    "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
+                             {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

@@ -2,7 +2,8 @@
 
 On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of:
 
-- the run's light, and (probe head) its sun lobe alone, with the sun lobe's share of the light's power;
+- the run's light, and (probe head) its sun lobe alone, with the sun lobe's share of the light's power; for a
+  run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
 - the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
   the predicted surface and through the GT mesh, from the input as the encoder sees it (sRGB, clipped at 1)
@@ -27,7 +28,7 @@ from dibrpp.sg import sg_integral
 
 from . import metrics
 from .light_probe import camera_to_probe, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
-from .model import LIGHT_KINDS, encoder_input, input_radiance, white_balance
+from .model import LIGHT_KINDS, clip_input, encoder_input, input_radiance, white_balance
 from .runs import load_run, run_folder
 
 
@@ -69,6 +70,9 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
             clipped = conventions.srgb_to_linear(conventions.linear_to_srgb(rgba[..., :3]))
             found = {"the run's light": metrics.dominant_direction(pred.light(cams.world_to_camera).to_envmap(64, 128).image)[0]}
+            if model.config.input_range == "full":  # what it places from an 8-bit picture (a PNG given to predict)
+                from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
+                found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
             for surface in ("predicted", "GT"):
                 for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
                     if surface == "predicted":

@@ -53,7 +53,7 @@ HDR_LOG_SCALE = 2.4
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("clipped", "full")}
+           "input_range": ("full", "clipped")}
 
 
 @dataclass
@@ -85,9 +85,9 @@ class ModelConfig:
     probe_samples: str = "pixels"
     # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
     light_prior: int = 0
-    # what the encoder sees of the input: clipped at 1, as an 8-bit picture shows it, or its full range (an EXR's
-    # sun reflections; :func:`encoder_input`)
-    input_range: str = "clipped"
+    # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
+    # clipped at 1, as an 8-bit picture shows it (versions up to 7)
+    input_range: str = "full"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False

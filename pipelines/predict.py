@@ -11,6 +11,8 @@ channel (the object's mask), as the datasets have; an image without one is accep
 ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
 foreground extraction for renders on a flat background). Any size from 8 x 8 pixels is padded to a square
 (transparent borders) and resized to the model's.
+Give a linear EXR where you have one: the model reads the input's full range, and a sun's reflection that an
+8-bit picture clips at 1 is where it finds the sun (docs/experiments.md, entry 13).
 The input camera is taken to be the training set-up (distance, elevation and field of view of the
 training dataset, stored with the run in ``camera.json``) at ``--azimuth`` degrees.
 """
@@ -99,6 +101,9 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     setup = load_camera(run)
     orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
     rgba = resize_input(image_rgba, config.image_size)
+    if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
+        say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
+            "the full range and places the light best from a linear EXR of the same view")
     say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, config.image_size)
     pred = model(encoder_input(rgba[None]), cam)

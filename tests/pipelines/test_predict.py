@@ -6,7 +6,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from dibrpp.io import read_exr
+from dibrpp.io import read_exr, read_image, write_exr
 from pipelines import predict, train
 
 
@@ -18,12 +18,20 @@ def run(tiny_glossy, tmp_path_factory):
     return out
 
 
-def test_predict_writes_textured_mesh_envmap_material_and_views(run, tiny_glossy, tmp_path):
+def test_predict_writes_textured_mesh_envmap_material_and_views(run, tiny_glossy, tmp_path, capsys):
     image = next((tiny_glossy / "samples").glob("*/view_01.png"))
     big = tmp_path / "big.png"
     Image.open(image).resize((100, 100)).save(big)  # any size is resized
     out = tmp_path / "pred"
     assert predict.main(["--checkpoint", str(run), "--image", str(big), "--out", str(out), "--spp", "4"]) == 0
+    assert "no radiance above 1" in capsys.readouterr().err  # the default model reads the full range: say so
+    rgba = read_image(image)  # the same view as a linear EXR with a sun's reflection in it: no note
+    h = rgba.shape[0] // 2
+    rgba[h - 2:h + 2, h - 2:h + 2, :3], rgba[h - 2:h + 2, h - 2:h + 2, 3] = 50.0, 1.0
+    write_exr(tmp_path / "view.exr", rgba)
+    assert predict.main(["--checkpoint", str(run), "--image", str(tmp_path / "view.exr"), "--out", str(tmp_path / "x"),
+                         "--spp", "2"]) == 0
+    assert "no radiance above 1" not in capsys.readouterr().err
     mesh = trimesh.load(out / "mesh.obj", process=False)
     assert len(mesh.faces) == 1280 and mesh.visual.uv is not None and mesh.visual.material.image is not None
     assert read_exr(out / "envmap.exr").shape == (64, 128, 3)
