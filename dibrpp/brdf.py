@@ -41,8 +41,6 @@ class Material:
 
     albedo: (B, 3) constant base colour, or a (B, Ht, Wt, 3) linear UV texture (needs mesh UVs).
     roughness / metallic / specular: (B,) or scalars, Principled meanings.
-    normal_offset: None, or a (B, Ht, Wt, 3) UV texture of world-frame vectors added to the interpolated unit
-        normal before it is renormalised (detail finer than the mesh; a world-frame normal map).
     """
 
     albedo: torch.Tensor
@@ -50,7 +48,6 @@ class Material:
     metallic: torch.Tensor | float = 0.0
     specular: torch.Tensor | float = 0.5
     wrap_u: bool = False  # texture wraps in u (template sphere seam)
-    normal_offset: torch.Tensor | None = None
     options: BRDFOptions = field(default_factory=BRDFOptions)
 
     @property

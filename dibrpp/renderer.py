@@ -48,19 +48,15 @@ class RenderOutput:
         return self.fragments.silhouette
 
 
-def texture_at_pixels(texture: torch.Tensor, meshes: Meshes, frags: Fragments, wrap_u: bool) -> torch.Tensor:
-    """(N, C) values of a (B or 1, Ht, Wt, C) UV texture at the covered pixels' interpolated UVs."""
-    if not meshes.has_uvs:
-        raise ValueError("a texture needs a mesh with UVs (uvs and face_uvs)")
-    uv = frags.interpolate(meshes.uvs, meshes.face_uvs)
-    tb = frags.batch if texture.shape[0] > 1 else torch.zeros_like(frags.batch)
-    return sample_texture(texture, uv, tb, wrap_u=wrap_u)
-
-
 def shading_albedo(material: Material, meshes: Meshes, frags: Fragments) -> torch.Tensor:
     """(N, 3) linear base colour of the covered pixels: texture lookup at interpolated UVs, or constant."""
     if material.is_texture:
-        return texture_at_pixels(material.albedo, meshes, frags, material.wrap_u)
+        if not meshes.has_uvs:
+            raise ValueError("a texture needs a mesh with UVs (uvs and face_uvs)")
+        uv = frags.interpolate(meshes.uvs, meshes.face_uvs)
+        tex = material.albedo
+        tb = frags.batch if tex.shape[0] > 1 else torch.zeros_like(frags.batch)
+        return sample_texture(tex, uv, tb, wrap_u=material.wrap_u)
     albedo = material.albedo.reshape(-1, 3).to(frags.bary)
     return albedo[frags.batch] if albedo.shape[0] > 1 else albedo.expand(frags.batch.shape[0], 3)
 
@@ -69,9 +65,6 @@ def build_gbuffer(meshes: Meshes, cameras: Cameras, material: Material, frags: F
     meshes = meshes.expand(len(cameras))
     position = frags.interpolate(meshes.verts, meshes.faces)
     normal = torch.nn.functional.normalize(frags.interpolate(meshes.vertex_normals(), meshes.faces), dim=-1, eps=1e-12)
-    if material.normal_offset is not None:
-        offset = texture_at_pixels(material.normal_offset, meshes, frags, material.wrap_u)
-        normal = torch.nn.functional.normalize(normal + offset, dim=-1, eps=1e-12)
     view = torch.nn.functional.normalize(cameras.centers.to(position)[frags.batch] - position, dim=-1, eps=1e-12)
     # Two-sided surfaces: a visible back face is shaded with its normal turned towards the viewer.
     geo = meshes.face_normals()[frags.batch, frags.pix_face]
@@ -147,12 +140,10 @@ class Renderer:
         g = build_gbuffer(meshes, cameras, material, frags)
         return RenderOutput(_compose(frags, g.point.albedo), frags, g)
 
-    def render_normals(self, meshes: Meshes, cameras: Cameras, material: Material | None = None) -> RenderOutput:
-        """World-space shading normals (no lighting; with the ``material``'s normal offset, if any), alpha =
-        coverage."""
+    def render_normals(self, meshes: Meshes, cameras: Cameras) -> RenderOutput:
+        """World-space shading normals (no lighting), alpha = coverage."""
         frags = self.rasterize(meshes, cameras)
-        material = material or Material(albedo=torch.ones(1, 3, device=frags.bary.device))
-        g = build_gbuffer(meshes, cameras, material, frags)
+        g = build_gbuffer(meshes, cameras, Material(albedo=torch.ones(1, 3, device=frags.bary.device)), frags)
         return RenderOutput(_compose(frags, g.point.normal), frags, g)
 
 

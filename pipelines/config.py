@@ -66,9 +66,6 @@ class TrainConfig:
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
-    normal_detail: float = _opt(0.0, "> 0: a world-frame normal offset per texel (each component bounded by this), "
-                                "predicted with the texture, refines the shape's normals in shading and in the probe",
-                                minimum=0.0)
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
@@ -223,8 +220,6 @@ VARIANTS: dict[str, Variant] = {
                            {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
-    "normal-detail": Variant("a normal offset per texel, predicted with the texture from the input (bound 0.5)",
-                             {"normal_detail": 0.5}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

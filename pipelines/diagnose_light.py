@@ -32,10 +32,9 @@ from .model import LIGHT_KINDS, clip_input, encoder_input, input_radiance, white
 from .runs import load_run, run_folder
 
 
-def cue_direction(meshes, cameras, radiance, alpha, normal_offset=None) -> torch.Tensor:
-    """(B, 3) dominant direction of the mirror cue of ``meshes`` (with a normal offset texture, if any) seen by
-    ``cameras`` in the world frame."""
-    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha, normal_offset)
+def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
+    """(B, 3) dominant direction of the mirror cue of ``meshes`` seen by ``cameras`` in the world frame."""
+    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
     mean, cover = scatter_to_grid(mirror_directions(normals, to_camera), seen, weight, 32, 64)
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
 
@@ -77,7 +76,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             for surface in ("predicted", "GT"):
                 for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
                     if surface == "predicted":
-                        d = cue_direction(pred.meshes(), cams, radiance, rgba[..., 3], pred.normal_detail)
+                        d = cue_direction(pred.meshes(), cams, radiance, rgba[..., 3])
                     else:
                         d = torch.cat([cue_direction(m, cams[[k]], radiance[k:k + 1], rgba[k:k + 1, ..., 3])
                                        for k, m in enumerate(gt_meshes)])

@@ -70,7 +70,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
     gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
     chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
                                         samples=4000) for k, gt in enumerate(gt_meshes)]
-    normals = renderer.render_normals(pred.meshes(), cams, pred.material())
+    normals = renderer.render_normals(pred.meshes(), cams)
     gt_normals = [renderer.render_normals(gt, cams[[k]]) for k, gt in enumerate(gt_meshes)]
     normal_deg, normal_within = metrics.normal_error_deg(
         normals.rgb, normals.alpha, torch.cat([g.rgb for g in gt_normals]), torch.cat([g.alpha for g in gt_normals]))

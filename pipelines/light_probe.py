@@ -72,19 +72,18 @@ def scatter_to_grid(dirs: torch.Tensor, values: torch.Tensor, weight: torch.Tens
 _PROBE_RASTER = RasterSettings(soft=False, filter_width=0.0, cull_backfaces=True)
 
 
-def pixel_samples(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor, alpha: torch.Tensor,
-                  normal_offset: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+def pixel_samples(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor,
+                  alpha: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """The predicted surface as the input view shows it, per pixel (dense, (B, H*W, ...), H = W the cameras'
-    resolution): world-frame unit normals (the renderer's shading normals, with a ``normal_offset`` UV texture
-    if given) and directions to the camera, the input's linear ``radiance`` (B, H, W, 3) there, and a weight
-    (the input's ``alpha`` (B, H, W) on the pixels the surface covers, else 0)."""
+    resolution): world-frame unit normals (the renderer's G-buffer's shading normals) and directions to the
+    camera, the input's linear ``radiance`` (B, H, W, 3) there, and a weight (the input's ``alpha`` (B, H, W)
+    on the pixels the surface covers, else 0)."""
     res = cameras.resolution
     if radiance.shape[1:3] != (res, res) or alpha.shape[1:] != (res, res):
         raise ValueError(f"the input view is {tuple(radiance.shape[1:3])} pixels, its cameras {res} x {res}")
     meshes = meshes.expand(len(cameras))
     frags = rasterize(meshes, cameras, _PROBE_RASTER)
-    surface = Material(albedo=radiance.new_ones(1, 3), normal_offset=normal_offset, wrap_u=True)
-    point = build_gbuffer(meshes, cameras, surface, frags).point
+    point = build_gbuffer(meshes, cameras, Material(albedo=radiance.new_ones(1, 3)), frags).point
     b = len(cameras)
     up = point.normal.new_tensor([0.0, 0.0, 1.0])  # any unit vector where nothing is covered (weight 0)
     dense = lambda packed: up.expand(b * res * res, 3).index_copy(0, frags.pix, packed).view(b, res * res, 3)  # noqa: E731

@@ -88,9 +88,6 @@ class ModelConfig:
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
     # clipped at 1, as an 8-bit picture shows it (versions up to 7)
     input_range: str = "full"
-    # > 0: the texture branch also predicts a world-frame normal offset per texel (each component bounded by this),
-    # added to the shape's interpolated normals in shading and in the probe: detail finer than 642 vertices
-    normal_detail: float = 0.0
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -183,9 +180,8 @@ class Prediction:
     """What the encoder predicts for a batch of B images; converts to renderer objects."""
 
     def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes,
-                 facing: torch.Tensor | None = None, normal_detail: torch.Tensor | None = None):
+                 facing: torch.Tensor | None = None):
         self.verts, self.texture = verts, texture
-        self.normal_detail = normal_detail  # (B, Ht, Wt, 3) world-frame normal offsets, or None
         # (B, Ht, Wt): how squarely each texel faced the input camera (0: away); None for the global texture
         self.facing = facing
         self.roughness, self.specular, self.metallic = roughness, specular, metallic
@@ -196,7 +192,7 @@ class Prediction:
 
     def material(self) -> Material:
         return Material(albedo=self.texture, roughness=self.roughness, metallic=self.metallic,
-                        specular=self.specular, wrap_u=True, normal_offset=self.normal_detail)
+                        specular=self.specular, wrap_u=True)
 
     def light(self, world_to_camera: torch.Tensor):
         """The predicted light in the world: it was predicted in the frame of the input camera whose
@@ -218,9 +214,8 @@ class Prediction:
     def _replace(self, fn, light_params: dict | None = None) -> "Prediction":
         """A prediction with ``fn`` applied to every tensor (and the light's parameters replaced, if given)."""
         light = light_params if light_params is not None else {k: fn(v) for k, v in self.light_params.items()}
-        optional = lambda t: None if t is None else fn(t)  # noqa: E731
         return Prediction(fn(self.verts), fn(self.texture), fn(self.roughness), fn(self.specular), fn(self.metallic),
-                          light, self.config, self.template, optional(self.facing), optional(self.normal_detail))
+                          light, self.config, self.template, None if self.facing is None else fn(self.facing))
 
     def detached(self) -> "Prediction":
         return self._replace(torch.Tensor.detach)
@@ -308,9 +303,8 @@ class Encoder(nn.Module):
             nn.Upsample(scale_factor=2), nn.Conv2d(2 * w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
             nn.Upsample(scale_factor=2), nn.Conv2d(w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True))
         fused = w + (4 + w + 1 if c.texture == "projected" else 0)
-        detail = 3 if c.normal_detail > 0 else 0
         self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
-                                     nn.Conv2d(w, 3 + detail, 3, 1, 1))
+                                     nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
@@ -330,9 +324,6 @@ class Encoder(nn.Module):
         with torch.no_grad():  # start at the template radius: the scale logit that gives scale 1
             lo, hi = c.scale_range
             self.shape_head.bias[-3:] = torch.logit(torch.tensor((1.0 - lo) / (hi - lo)))
-        if c.normal_detail > 0:  # no detail at the start: the shape's own normals
-            nn.init.zeros_(self.tex_out[-1].weight[3:])
-            nn.init.zeros_(self.tex_out[-1].bias[3:])
         if c.light_head == "probe":
             return  # ProbeLightHead starts at the projected map
         nn.init.normal_(self.light_head.weight, std=1e-3)
@@ -378,18 +369,15 @@ class Encoder(nn.Module):
         return self.template_dirs * scale.unsqueeze(1) + offsets
 
     def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor,
-                 texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-        """Linear albedo (B, Ht, Wt, 3) in (0, 1), the texels' facing of the input camera (projected only), and
-        the world-frame normal detail (B, Ht, Wt, 3) (with ``normal_detail`` > 0)."""
+                 texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Linear albedo (B, Ht, Wt, 3) in (0, 1), and the texels' facing of the input camera (projected only)."""
         c = self.config
         b, th, tw = f.shape[0], c.texture_height // 8, c.texture_width // 8
         feats, facing = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))], None
         if c.texture == "projected":
             feats.append(self._projected(stem, images, texels))
             facing = feats[-1][:, -1]
-        out = self.tex_out(torch.cat(feats, 1)).permute(0, 2, 3, 1)
-        detail = c.normal_detail * torch.tanh(out[..., 3:]) if c.normal_detail > 0 else None
-        return torch.sigmoid(out[..., :3]), facing, detail
+        return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1), facing
 
     def _texel_view(self, verts: torch.Tensor, cameras: Cameras | None) -> "TexelView":
         """Where each texel of the predicted surface lies in the input view, and which way it faces."""
@@ -419,12 +407,12 @@ class Encoder(nn.Module):
         return torch.cat([seen * (facing > 0), facing], 1)
 
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
-                     code: torch.Tensor, normal_detail: torch.Tensor | None) -> dict:
+                     code: torch.Tensor) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
             normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
-                                                                 *input_radiance(images), normal_offset=normal_detail)
+                                                                 *input_radiance(images))
         else:
             seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
             radiance = decode_colour((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp_min(0))
@@ -450,7 +438,7 @@ class Encoder(nn.Module):
         verts = self._shape(self.shape_head(f))
         needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
-        texture, facing, detail = self._texture(f, stem, images, texels)
+        texture, facing = self._texture(f, stem, images, texels)
         mat = self.material_head(f)
         lo, hi = c.roughness_range
         roughness = squash(mat[:, 0], lo, hi)
@@ -458,13 +446,12 @@ class Encoder(nn.Module):
         metallic = squash(mat[:, 2]) if c.predict_metallic else torch.zeros_like(mat[:, 2])
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            light = self._probe_light(images, verts.detach(), texels, cameras, f,
-                                      None if detail is None else detail.detach())
+            light = self._probe_light(images, verts.detach(), texels, cameras, f)
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":
             light = white_balance(light, kind, c.env_height)
-        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing, detail)
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
 
     def _light_from_code(self, f: torch.Tensor) -> dict:
         """The light regressed from the global code (the paper's head)."""

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dibrpp import Cameras, Renderer
-from dibrpp.brdf import MIN_ALPHA, Material, alpha_from_roughness
+from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines import losses
@@ -269,26 +269,3 @@ def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
     assert ((normals[:, centre] * to_camera[:, centre]).sum(-1) > 0.95).all()
     with pytest.raises(ValueError, match="pixels"):
         pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
-    # with a normal offset texture: the renderer's normals with the same offset (a strong +Z everywhere)
-    offset = torch.zeros(1, 8, 16, 3)
-    offset[..., 2] = 4.0
-    tilted = pixel_samples(sphere, cams, radiance, alpha, normal_offset=offset)[0]
-    shown = Renderer("sg", compile=False).render_normals(sphere, cams, Material(torch.ones(1, 3), normal_offset=offset))
-    torch.testing.assert_close(tilted[covered], shown.rgb[..., :3].reshape(2, -1, 3)[covered], atol=1e-5, rtol=0)
-    assert tilted[covered][:, 2].median() > 0.9 > normals[covered][:, 2].median()
-
-
-def test_normal_detail_starts_at_the_shapes_normals_and_learns_from_shading():
-    torch.manual_seed(0)
-    model = Encoder(ModelConfig(image_size=32, light_head="probe", normal_detail=0.5))
-    cams = _cams(2)
-    rgba = torch.rand(2, 32, 32, 4)
-    pred = model(encoder_input(rgba), cams)
-    assert pred.normal_detail.shape == (2, 32, 64, 3) and float(pred.normal_detail.detach().abs().max()) == 0.0
-    plain = Renderer("sg", compile=False)
-    with_detail = plain(pred.meshes(), cams, pred.material(), pred.light(cams.world_to_camera))
-    torch.testing.assert_close(with_detail.rgb, plain(pred.meshes(), cams, Material(pred.texture, pred.roughness,
-                               pred.metallic, pred.specular, wrap_u=True), pred.light(cams.world_to_camera)).rgb)
-    with_detail.rgb.sum().backward()
-    assert float(model.tex_out[-1].weight.grad[3:].abs().sum()) > 0  # the image reaches the detail
-    assert Encoder(ModelConfig(image_size=32)).tex_out[-1].out_channels == 3  # no detail: the model as before
