@@ -218,6 +218,8 @@ VARIANTS: dict[str, Variant] = {
                             {"light_head": "probe", "probe_samples": "texels"}, runs=(("metallic", 0),)),
     "light-prior": Variant("the probe head's SG sky in a prior learned from 2000 procedural env maps (log-PCA, 16)",
                            {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
+    "laplacian-0.005": Variant("the shape's Laplacian smoothness weight at a quarter (0.005): sharper breaks for the normals",
+                               {"w_laplacian": 0.005}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model

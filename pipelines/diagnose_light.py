@@ -6,11 +6,11 @@ On the test views with a dominant light, the direction error (median, share with
   run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
 - the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
-  the predicted surface and through the GT mesh, from the input as the encoder sees it (sRGB, clipped at 1)
+  the predicted surface and through the GT mesh, from the input clipped at 1 (as an 8-bit picture shows it)
   and at its full dynamic range;
 - (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one.
 
-Each row is a limit the light head works within; docs/experiments.md (entry 12) reads them.
+Each row is a limit the light head works within; docs/experiments.md (entries 12 and 13) reads them.
 """
 from __future__ import annotations
 

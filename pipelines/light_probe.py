@@ -22,9 +22,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from dibrpp import conventions as conventions
+from dibrpp.brdf import Material
 from dibrpp.camera import Cameras
 from dibrpp.mesh import Meshes
-from dibrpp.brdf import Material
 from dibrpp.raster import RasterSettings, rasterize
 from dibrpp.renderer import build_gbuffer
 
