@@ -187,6 +187,9 @@ def test_full_range_input_keeps_the_sun_and_clipping_gives_the_8_bit_picture():
     radiance, alpha = input_radiance(images)
     assert torch.allclose(radiance[0], rgba[0, ..., :3], rtol=1e-4)  # the full range comes back where alpha is 1
     assert float(input_radiance(clip_input(images))[0].max()) <= 1.0
+    # a colour over a tiny alpha (resampled edges) decodes to a bounded radiance, not to inf
+    edge = torch.cat([torch.full((1, 3, 4, 4), 0.9), torch.full((1, 1, 4, 4), 1e-4)], 1)
+    assert torch.isfinite(input_radiance(edge)[0]).all()
     # a clipped model sees the same input either way; a full-range one sees the sun
     cams = _cams(3, 16)
     for input_range in ("clipped", "full"):
