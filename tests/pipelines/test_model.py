@@ -11,8 +11,7 @@ from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines import losses
-from pipelines.light_probe import pixel_samples
-from pipelines.light_probe import compress_radiance
+from pipelines.light_probe import compress_radiance, pixel_samples
 from pipelines.model import (Encoder, ModelConfig, clip_input, decode_colour, encode_colour, encoder_input,
                              input_radiance, squash, white_balance)
 
