@@ -28,7 +28,8 @@ from dibrpp.sg import sg_integral
 
 from . import metrics
 from .light_probe import camera_to_probe, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
-from .model import LIGHT_KINDS, clip_input, encoder_input, input_radiance, white_balance
+from .model import LIGHT_KINDS, white_balance
+from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
 
 

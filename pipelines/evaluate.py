@@ -32,7 +32,7 @@ from dibrpp.io import DataError, atomic_path
 from dibrpp.lights import EnvMap
 
 from . import metrics
-from .model import encoder_input
+from .model_input import encoder_input
 from .refine import refine_light
 from .report import write_report
 from .runs import checkpoint_digest, find_runs, load_config, load_run, make_renderer

@@ -35,19 +35,17 @@ from dibrpp.mesh import Meshes, icosphere, vertex_normals
 from dibrpp.sg import sg_integral
 
 from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
+from .model_input import MAX_LOG_RADIANCE, clip_input, decode_colour, input_radiance
+from .template import mirror_index, texel_barycentrics
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
 MODEL_VERSION = 8  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
-MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data
 # fields added since an older version, with the value that reproduces the model that version trained
 _CLIPPED = {"input_range": "clipped"}
 MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}, 3: {"light_head": "global", **_CLIPPED},
               4: {"probe_start": "colour", "probe_samples": "texels", **_CLIPPED},
               5: {"probe_samples": "texels", **_CLIPPED}, 6: _CLIPPED, 7: _CLIPPED}
-# above radiance 1 the encoder's colour grows as 1 + ln(x) / HDR_LOG_SCALE (about the sRGB curve's slope at 1),
-# so a sun's reflection (~1e4) reads ~4.8 where a clipped picture shows 1
-HDR_LOG_SCALE = 2.4
 
 
 # the allowed values of the model's string options
@@ -119,39 +117,6 @@ class ModelConfig:
             raise ValueError(f"the checkpoint's model configuration has unknown fields {sorted(unknown)}")
         tuples = {"scale_range", "roughness_range"}
         return cls(**{k: tuple(v) if k in tuples else v for k, v in d.items() if k in names})
-
-
-def encode_colour(radiance: torch.Tensor) -> torch.Tensor:
-    """Linear radiance -> the encoder's colour: sRGB up to 1, logarithmic above (1 + ln(x) / HDR_LOG_SCALE)."""
-    hdr = 1 + torch.log(radiance.clamp_min(1.0)) / HDR_LOG_SCALE
-    return torch.where(radiance > 1, hdr, conventions.linear_to_srgb(radiance))
-
-
-def decode_colour(colour: torch.Tensor) -> torch.Tensor:
-    """The inverse of :func:`encode_colour` (colours up to 1 decode as sRGB, clamped at 0; radiance bounded by
-    exp(MAX_LOG_RADIANCE), as the light is, so that a colour divided by a tiny alpha stays finite)."""
-    hdr = torch.exp(((colour.clamp_min(1.0) - 1) * HDR_LOG_SCALE).clamp_max(MAX_LOG_RADIANCE))
-    return torch.where(colour > 1, hdr, conventions.srgb_to_linear(colour))
-
-
-def encoder_input(rgba: torch.Tensor) -> torch.Tensor:
-    """The encoder's input: (B, H, W, 4) linear RGBA -> (B, 4, H, W) colour (:func:`encode_colour`, full range) on
-    black, alpha. A clipped-input model clips it itself (:func:`clip_input`)."""
-    rgb = encode_colour(rgba[..., :3]) * rgba[..., 3:]
-    return torch.cat([rgb, rgba[..., 3:]], -1).permute(0, 3, 1, 2)
-
-
-def clip_input(images: torch.Tensor) -> torch.Tensor:
-    """:func:`encoder_input` images as an 8-bit picture shows them: radiance clipped at 1."""
-    one = conventions.linear_to_srgb(images.new_ones(()))
-    return torch.cat([torch.minimum(images[:, :3], images[:, 3:] * one), images[:, 3:]], 1)
-
-
-def input_radiance(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """What :func:`encoder_input` images show: linear radiance (B, H, W, 3) and alpha (B, H, W)."""
-    alpha = images[:, 3].clamp(0, 1)
-    rgb = decode_colour((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp_min(0))
-    return rgb.permute(0, 2, 3, 1), alpha
 
 
 def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.05) -> torch.Tensor:
@@ -240,39 +205,6 @@ class TexelView:
 
 def _down_block(cin, cout):
     return nn.Sequential(nn.Conv2d(cin, cout, 4, 2, 1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2, inplace=True))
-
-
-def mirror_index(verts: torch.Tensor) -> torch.Tensor:
-    """(V,) index of each template vertex's mirror image under y -> -y (the icosphere is symmetric)."""
-    mirrored = verts * verts.new_tensor([1.0, -1.0, 1.0])
-    d, idx = torch.cdist(mirrored, verts, compute_mode="donot_use_mm_for_euclid_dist").min(1)
-    if float(d.max()) > 1e-4 * float(verts.norm(dim=-1).max()):
-        raise ValueError("the template is not mirror-symmetric about the XZ plane")
-    return idx
-
-
-def texel_barycentrics(template: Meshes, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """For each texel of an equirect (height, width) texture on the template sphere: the face its
-    direction hits and the barycentrics, so texel positions follow any deformation of the template."""
-    d = conventions.equirect_directions(height, width).reshape(-1, 3)  # texel centre -> direction (Blender's mapping)
-    tri = template.verts[0][template.faces]  # (F, 3, 3)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    # ray o=0, dir d against every face (Moller-Trumbore), the nearest hit with barycentrics >= 0
-    e1, e2 = b - a, c - a
-    p = torch.linalg.cross(d[:, None], e2[None], dim=-1)  # (T, F, 3)
-    det = (p * e1[None]).sum(-1)
-    inv = 1.0 / torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
-    s = -a[None]
-    u = (s * p).sum(-1) * inv
-    q = torch.linalg.cross(s, e1[None].expand_as(s), dim=-1)
-    v = (d[:, None] * q).sum(-1) * inv
-    t = (e2[None] * q).sum(-1) * inv
-    ok = (u >= -1e-5) & (v >= -1e-5) & (u + v <= 1 + 1e-5) & (t > 0)
-    face = torch.where(ok, t, torch.full_like(t, float("inf"))).argmin(1)
-    rows = torch.arange(d.shape[0])
-    uu, vv = u[rows, face].clamp(0, 1), v[rows, face].clamp(0, 1)
-    bary = torch.stack([1 - uu - vv, uu, vv], -1)
-    return face, bary / bary.sum(-1, keepdim=True)
 
 
 class Encoder(nn.Module):
@@ -429,7 +361,7 @@ class Encoder(nn.Module):
         return images if self.config.input_range == "full" else clip_input(images)
 
     def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
-        """images: (B, 4, S, S) from :func:`encoder_input`; cameras: the B input views (needed by the
+        """images: (B, 4, S, S) from :func:`pipelines.model_input.encoder_input`; cameras: the B input views (needed by the
         projected texture and the probe light head)."""
         c = self.config
         images = self.visible_input(images)

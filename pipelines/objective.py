@@ -15,7 +15,7 @@ from dibrpp.mesh import laplacian_smoothness
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
                      hdr_srgb, soft_iou_loss, supervised_light_loss, with_albedo_detail)
-from .model import encoder_input
+from .model_input import encoder_input
 
 
 @dataclass

@@ -32,7 +32,7 @@ from dibrpp.cli_args import (Parser, check_output_folder, finite_float, non_nega
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .model import encoder_input
+from .model_input import encoder_input
 from .refine import refine_light
 from .runs import load_camera, load_run, make_renderer, run_folder
 

@@ -13,7 +13,8 @@ import torch
 import torch.nn.functional as F
 
 from .losses import foreground_l1, hdr_srgb
-from .model import LIGHT_KINDS, MAX_LOG_RADIANCE, MAX_SHARPNESS, Prediction, white_balance
+from .model import LIGHT_KINDS, MAX_SHARPNESS, Prediction, white_balance
+from .model_input import MAX_LOG_RADIANCE
 
 
 def _free(params: dict, kind: str) -> dict:

@@ -10,7 +10,8 @@ from dibrpp.conventions import equirect_directions
 from dibrpp.io import DataError
 from pipelines import light_prior
 from pipelines.light_prior import HEIGHT, SUN_CLIP, WIDTH, build, fit, log_luminance, solid_angle_weights
-from pipelines.model import Encoder, ModelConfig, encoder_input
+from pipelines.model import Encoder, ModelConfig
+from pipelines.model_input import encoder_input
 
 
 def synthetic_maps(n: int, seed: int = 0) -> np.ndarray:

@@ -5,7 +5,8 @@ from dibrpp import Cameras, Renderer
 from dibrpp.lights import SGLight
 from pipelines import metrics
 from pipelines.losses import foreground_l1, hdr_srgb
-from pipelines.model import Encoder, ModelConfig, encoder_input
+from pipelines.model import Encoder, ModelConfig
+from pipelines.model_input import encoder_input
 from pipelines.refine import refine_light
 
 
