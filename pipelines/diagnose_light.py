@@ -20,7 +20,6 @@ from pathlib import Path
 import torch
 
 from datagen.reader import MultiViewDataset, collate
-from dibrpp import conventions
 from dibrpp.cli_args import Parser, positive_int
 from dibrpp.formatting import markdown_table
 from dibrpp.io import DataError
@@ -69,7 +68,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             images = encoder_input(rgba)
             pred = model(images, cams)
             gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
-            clipped = conventions.srgb_to_linear(conventions.linear_to_srgb(rgba[..., :3]))
+            clipped = input_radiance(clip_input(images))[0]  # as an 8-bit picture shows the view
             found = {"the run's light": metrics.dominant_direction(pred.light(cams.world_to_camera).to_envmap(64, 128).image)[0]}
             if model.config.input_range == "full":  # what it places from an 8-bit picture (a PNG given to predict)
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from datagen.prior_maps import MANIFEST, chunk_path
 from dibrpp import conventions
 from dibrpp.cli_args import Parser, positive_int
 from dibrpp.formatting import pyplot, save_figure
@@ -32,20 +33,19 @@ COMPONENTS = 16
 HEIGHT, WIDTH = 16, 32  # the probe head's grid
 SUN_CLIP = 8.0  # cells brighter than this many times the map's median are clipped to it (the sun's share)
 TURNS = 8  # random turns about the vertical per map
-LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
 def read_manifest(folder: Path) -> tuple[dict, list[Path]]:
     """The manifest of a :mod:`datagen.prior_maps` folder and its chunk files, all of them present."""
     folder = Path(folder)
     try:
-        manifest = json.loads((folder / "manifest.json").read_text())
+        manifest = json.loads((folder / MANIFEST).read_text())
     except (FileNotFoundError, NotADirectoryError):
         raise DataError(f"{folder}: no env maps for the light prior; make them with `make light-prior`") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DataError(f"{folder / 'manifest.json'}: not a manifest of env maps ({e}); rebuild with `make light-prior`") from None
+        raise DataError(f"{folder / MANIFEST}: not a manifest of env maps ({e}); rebuild with `make light-prior`") from None
     expected = manifest["count"] // manifest["chunk"]
-    chunks = [folder / f"maps_{k:04d}.npy" for k in range(expected)]  # as datagen.prior_maps names them
+    chunks = [chunk_path(folder, k) for k in range(expected)]
     done = sum(c.exists() for c in chunks)
     if done < expected:
         raise DataError(f"{folder}: {done} of {expected} chunks of maps; finish them with `make light-prior`")
@@ -61,7 +61,7 @@ def read_maps(folder: Path) -> tuple[np.ndarray, dict]:
 def log_luminance(maps: torch.Tensor) -> torch.Tensor:
     """(N, H, W, 3) linear maps -> (N, HEIGHT * WIDTH) log luminance on the head's grid, the sun clipped to
     SUN_CLIP x the map's median, each map's solid-angle-weighted mean removed (the prior models shape, not level)."""
-    lum = (maps * maps.new_tensor(LUMINANCE)).sum(-1, keepdim=True).permute(0, 3, 1, 2)
+    lum = (maps * maps.new_tensor(conventions.LUMINANCE_WEIGHTS)).sum(-1, keepdim=True).permute(0, 3, 1, 2)
     lum = torch.nn.functional.adaptive_avg_pool2d(lum, (HEIGHT, WIDTH)).flatten(1).clamp_min(1e-6)
     lum = torch.minimum(lum, SUN_CLIP * lum.median(1, keepdim=True).values)
     log = lum.log()

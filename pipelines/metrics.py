@@ -79,7 +79,7 @@ class ProbeScene:
 
     def __init__(self, world_to_camera: torch.Tensor, resolution: int = 24, env_height: int = 24):
         from dibrpp.brdf import ShadingPoint, alpha_from_roughness
-        from dibrpp.conventions import equirect_directions
+        from dibrpp.conventions import LUMINANCE_WEIGHTS, equirect_directions
 
         self.batch, self.resolution, self.env_height = world_to_camera.shape[0], resolution, env_height
         rot = world_to_camera[:, :3, :3].float()
@@ -162,10 +162,10 @@ def dominant_direction(env: torch.Tensor, height: int = 16, cone_deg: float = 20
     """Main light direction of world-frame equirect maps (B, H, W, 3): the power-weighted mean direction of
     the cells (of a ``height`` x 2 ``height`` grid) within ``cone_deg`` of the cell that sends the most power,
     and the fraction of the total power that cell sends. Returns ((B, 3) unit directions, (B,) fractions)."""
-    from dibrpp.conventions import equirect_directions
+    from dibrpp.conventions import LUMINANCE_WEIGHTS, equirect_directions
 
     b, h, w, _ = env.shape
-    lum = (env * env.new_tensor([0.2126, 0.7152, 0.0722])).sum(-1)
+    lum = (env * env.new_tensor(LUMINANCE_WEIGHTS)).sum(-1)
     theta = (torch.arange(h, dtype=env.dtype) + 0.5) * math.pi / h
     power = lum * torch.sin(theta).view(1, -1, 1)  # radiance x solid angle
     cells = torch.nn.functional.adaptive_avg_pool2d(power.unsqueeze(1), (height, 2 * height)).flatten(1)

@@ -35,7 +35,7 @@ from dibrpp.mesh import Meshes, icosphere, vertex_normals
 from dibrpp.sg import sg_integral
 
 from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
-from .model_input import MAX_LOG_RADIANCE, clip_input, decode_colour, input_radiance
+from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_radiance
 from .template import mirror_index, texel_barycentrics
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
@@ -347,7 +347,7 @@ class Encoder(nn.Module):
                                                                  *input_radiance(images))
         else:
             seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
-            radiance = decode_colour((seen[..., :3] / seen[..., 3:].clamp_min(1e-3)).clamp_min(0))
+            radiance = decode_premultiplied(seen[..., :3], seen[..., 3:])
             weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
             normals, to_camera = texels.normals, texels.to_camera
         world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)

@@ -43,8 +43,12 @@ def clip_input(images: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.minimum(images[:, :3], images[:, 3:] * one), images[:, 3:]], 1)
 
 
+def decode_premultiplied(colour: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Linear radiance from encoder colour premultiplied by ``alpha`` (broadcasting; the division floored)."""
+    return decode_colour((colour / alpha.clamp_min(1e-3)).clamp_min(0))
+
+
 def input_radiance(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """What :func:`encoder_input` images show: linear radiance (B, H, W, 3) and alpha (B, H, W)."""
     alpha = images[:, 3].clamp(0, 1)
-    rgb = decode_colour((images[:, :3] / alpha.unsqueeze(1).clamp_min(1e-3)).clamp_min(0))
-    return rgb.permute(0, 2, 3, 1), alpha
+    return decode_premultiplied(images[:, :3], alpha.unsqueeze(1)).permute(0, 2, 3, 1), alpha
