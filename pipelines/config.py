@@ -66,8 +66,12 @@ class TrainConfig:
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
+    shape_detail: str = _opt("none", "a per-vertex offset from what the input shows where each vertex of the global "
+                             "shape projects (projected), or none", ("none", "projected"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
+    own_light: bool = _opt(False, "every render lit by the light predicted from its prediction's own input view (one "
+                           "world light must explain both views), not by the light predicted from the view it is in")
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
     light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
@@ -107,6 +111,9 @@ class TrainConfig:
             raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
         if self.shared_light and self.swap_light:
             raise ConfigError("shared_light and swap_light pair the batch differently; choose one")
+        if self.own_light and (self.shared_light or self.swap_light):
+            raise ConfigError("own_light lights each render with its prediction's own light; shared_light and "
+                              "swap_light light cross-view renders with another's: choose one")
         if self.shading == "sh" and self.light_head == "probe":
             raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
                               "(or auto) with --shading sh")
@@ -222,6 +229,10 @@ VARIANTS: dict[str, Variant] = {
                                {"w_laplacian": 0.005}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
+    "vertex-detail": Variant("the shape refined per vertex from the input's colour and features where it projects",
+                             {"shape_detail": "projected"}, runs=(("metallic", 0), ("glossy", 0))),
+    "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",
+                         {"own_light": True}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

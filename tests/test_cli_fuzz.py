@@ -77,6 +77,8 @@ CLIS = [
         ("datagen.prior_maps:generate",), paths=dict(out="dir-out"), zero_ok=("seed",)),
     Cli("python -m pipelines.diagnose_light", "pipelines.diagnose_light:main", ["--run", "{run}"],
         ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in")),
+    Cli("python -m pipelines.diagnose_shape", "pipelines.diagnose_shape:main", ["--dataset", "{data}"],
+        ("pipelines.diagnose_shape:diagnose",), paths=dict(dataset="dir-in"), strings=("signals",)),
     Cli("python -m pipelines.light_prior", "pipelines.light_prior:main", ["--maps", "{data}"],
         ("pipelines.light_prior:build",), paths=dict(maps="dir-in")),
     Cli("python -m dibrpp render", "dibrpp.cli:main",

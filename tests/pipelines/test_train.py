@@ -254,3 +254,16 @@ def test_paper_presets_generate_and_train(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     state = torch.load(out / "checkpoint.pt", weights_only=True)
     assert state["iteration"] == 2 and state["model_config"]["image_size"] == 256
+
+
+def test_own_light_lights_each_render_with_its_predictions_light():
+    from pipelines.objective import render_plan
+    partner = torch.tensor([1, 0])
+    default = render_plan(2, partner, TrainConfig())
+    own = render_plan(2, partner, TrainConfig(own_light=True))
+    assert torch.equal(own.src, default.src) and torch.equal(own.dst, default.dst)
+    assert torch.equal(default.lit_by, default.dst) and torch.equal(own.lit_by, own.src)
+    assert (own.src != own.dst).any()  # the cross-view renders are the ones that change
+    for other in ("shared_light", "swap_light"):
+        with pytest.raises(ConfigError, match="choose one"):
+            TrainConfig(own_light=True, **{other: True}).validate()

@@ -1,0 +1,148 @@
+"""What the shape's template can reach, and which training signal holds its normals:
+``python -m pipelines.diagnose_shape --dataset data/metallic``.
+
+Per test object, the model's own shape (the template sphere scaled per axis plus bounded, mirror-symmetric
+per-vertex offsets; ``Encoder._shape``) is fitted directly to the object's views, no encoder, with the
+training's Laplacian weight and one of three signals:
+
+- ``normals``: the rendered normals against the GT mesh's, plus the silhouettes: what the template can represent;
+- ``silhouettes``: the soft-silhouette loss alone: what the outlines hold;
+- ``image``: the training's image, gradient and silhouette losses against the Cycles views, rendered with the
+  GT material and the GT env map's 32-lobe SG fit while an albedo texture is fitted alongside: what shading holds
+  when the light is known.
+
+The predicted normals' error is then measured as ``make eval`` measures it (``metrics.normal_error_deg``: per
+view, the median angle over the pixels both surfaces cover), median over views and objects. A trained run's
+error sits between these rows; docs/experiments.md (entry 14) reads them.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from datagen.reader import MultiViewDataset
+from dibrpp import Cameras, Renderer
+from dibrpp.brdf import Material
+from dibrpp.cli_args import Parser, positive_int
+from dibrpp.formatting import markdown_table
+from dibrpp.io import DataError
+from dibrpp.lights import EnvMap, fit_sg_to_envmap
+from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
+
+from . import metrics
+from .config import TrainConfig
+from .losses import foreground_l1, gradient_loss, hdr_srgb, soft_iou_loss
+from .model import Encoder, ModelConfig
+
+SIGNALS = ("normals", "silhouettes", "image")
+
+
+def object_views(ds: MultiViewDataset, obj: int, env: int) -> tuple[Cameras, torch.Tensor]:
+    """All views of one sample: their cameras and linear RGBA images (V, S, S, 4)."""
+    cams = [ds.camera(obj, env, v) for v in range(ds.num_views)]
+    cameras = Cameras(torch.stack([m for m, _ in cams]), torch.tensor([f for _, f in cams]), ds.resolution)
+    return cameras, torch.stack([ds.view_image(obj, env, v) for v in range(ds.num_views)])
+
+
+def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tensor, gt_normals, material: dict,
+              light, steps: int, weights: TrainConfig) -> torch.Tensor:
+    """The model's shape parameters fitted to one object's views with ``signal``; returns its vertices (1, V, 3)."""
+    n = len(images)
+    raw = model.shape_head.bias.detach().clone()[None].requires_grad_(True)  # the template sphere
+    params = [raw]
+    if signal == "image":
+        c = model.config
+        texture = torch.zeros(1, c.texture_height, c.texture_width, 3, requires_grad=True)  # albedo 0.5
+        params.append(texture)
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    renderer = Renderer("sg")
+    opt = torch.optim.Adam(params, lr=0.05)
+    for step in range(steps):
+        if step == 2 * steps // 3:
+            for group in opt.param_groups:
+                group["lr"] = 0.01
+        verts = model._shape(raw)
+        meshes = model.template().with_verts(verts.expand(n, -1, -1))
+        smooth = weights.w_laplacian * laplacian_smoothness(verts, laplacian) / model.config.template_radius ** 2
+        if signal == "image":
+            albedo = torch.sigmoid(texture).expand(n, -1, -1, -1)
+            out = renderer(meshes, cameras, Material(albedo=albedo, wrap_u=True, **material), light)
+            rgb, target = hdr_srgb(out.rgb), hdr_srgb(images[..., :3])
+            loss = (weights.w_image * foreground_l1(rgb, target, images[..., 3])
+                    + weights.w_gradient * gradient_loss(rgb, target * images[..., 3:]))
+        else:
+            out = renderer.render_normals(meshes, cameras)
+            loss = torch.zeros(())
+            if signal == "normals":
+                both = (out.alpha > 0.5) & (gt_normals.alpha > 0.5)
+                cos = (F.normalize(out.rgb[..., :3], dim=-1, eps=1e-12) * gt_normals.rgb[..., :3]).sum(-1)
+                loss = ((1 - cos) * both).sum() / both.sum().clamp_min(1)
+        loss = loss + weights.w_iou * soft_iou_loss(out.silhouette, images[..., 3]) + smooth
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return model._shape(raw).detach()
+
+
+def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[list]:
+    ds = MultiViewDataset(dataset, split="test", views_per_item=1)
+    model = Encoder(ModelConfig(image_size=ds.resolution))
+    weights = TrainConfig()
+    samples = list(dict.fromkeys(obj for obj, _ in ds.samples))[:objects]
+    if not samples:
+        raise DataError(f"{dataset}: no test objects to fit")
+    errors = {s: [] for s in signals}
+    within = {s: [] for s in signals}
+    renderer = Renderer("sg")
+    for k, obj in enumerate(samples):
+        env = next(e for o, e in ds.samples if o == obj)
+        cameras, images = object_views(ds, obj, env)
+        with torch.no_grad():
+            gt = renderer.render_normals(ds.mesh(obj).expand(len(images)), cameras)
+        m = ds.materials[obj]
+        material = dict(roughness=float(m["roughness"]), metallic=float(m["metallic"]),
+                        specular=float(m["specular_ior_level"]))
+        light = fit_sg_to_envmap(EnvMap(ds.envmap(env)[None]), 32) if "image" in signals else None
+        for signal in signals:
+            start = time.time()
+            verts = fit_shape(model, signal, cameras, images, gt, material, light, steps, weights)
+            with torch.no_grad():
+                pred = renderer.render_normals(model.template().with_verts(verts.expand(len(images), -1, -1)), cameras)
+            deg, share = metrics.normal_error_deg(pred.rgb[..., :3], pred.alpha, gt.rgb[..., :3], gt.alpha)
+            errors[signal].append(deg.nanmedian())
+            within[signal].append(share.nanmean())
+            print(f"object {obj} ({k + 1}/{len(samples)}), {signal}: normals {float(deg.nanmedian()):.1f} deg "
+                  f"({time.time() - start:.0f} s)", file=sys.stderr, flush=True)
+    return [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}"]
+            for s in signals]
+
+
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m pipelines.diagnose_shape", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", required=True, metavar="DIR", help="dataset folder (its test split is used)")
+    ap.add_argument("--objects", type=positive_int, default=6, metavar="N", help="test objects to fit (default: 6)")
+    ap.add_argument("--steps", type=positive_int, default=300, metavar="N", help="Adam steps per fit (default: 300)")
+    ap.add_argument("--signals", default=",".join(SIGNALS), help=f"comma-separated subset of {', '.join(SIGNALS)}")
+    ap.add_argument("--threads", type=positive_int, default=None, metavar="N", help="torch CPU threads")
+    args = ap.parse_args(argv)
+    signals = tuple(dict.fromkeys(s.strip() for s in args.signals.split(",") if s.strip()))
+    if not signals or set(signals) - set(SIGNALS):
+        ap.error(f"--signals {args.signals!r}: choose a comma-separated subset of {', '.join(SIGNALS)}")
+    if not Path(args.dataset).is_dir():
+        ap.error(f"--dataset {args.dataset}: not a folder; render one with `make data-glossy` or `make data-metallic`")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    try:
+        rows = diagnose(args.dataset, args.objects, args.steps, signals)
+    except DataError as e:
+        ap.error(str(e))
+    print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°"], rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
