@@ -70,8 +70,9 @@ class TrainConfig:
                              "shape projects (projected), or none", ("none", "projected"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
-    own_light: bool = _opt(False, "every render lit by the light predicted from its prediction's own input view (one "
-                           "world light must explain both views), not by the light predicted from the view it is in")
+    cross_view_light: str = _opt("view", "the light of a prediction's render in the other view of its pair: the light "
+                                 "predicted from that view (eq. 8), its own (one world light for both views), or both "
+                                 "(a render under each)", ("view", "own", "both"))
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
     light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
@@ -111,9 +112,9 @@ class TrainConfig:
             raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
         if self.shared_light and self.swap_light:
             raise ConfigError("shared_light and swap_light pair the batch differently; choose one")
-        if self.own_light and (self.shared_light or self.swap_light):
-            raise ConfigError("own_light lights each render with its prediction's own light; shared_light and "
-                              "swap_light light cross-view renders with another's: choose one")
+        if self.cross_view_light != "view" and (self.shared_light or self.swap_light):
+            raise ConfigError(f"cross_view_light {self.cross_view_light!r} lights cross-view renders with the "
+                              "prediction's own light; shared_light and swap_light with another's: choose one")
         if self.shading == "sh" and self.light_head == "probe":
             raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
                               "(or auto) with --shading sh")
@@ -232,7 +233,9 @@ VARIANTS: dict[str, Variant] = {
     "vertex-detail": Variant("the shape refined per vertex from the input's colour and features where it projects",
                              {"shape_detail": "projected"}, runs=(("metallic", 0), ("glossy", 0))),
     "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",
-                         {"own_light": True}, runs=(("metallic", 0), ("glossy", 0))),
+                         {"cross_view_light": "own"}, runs=(("metallic", 0), ("glossy", 0))),
+    "both-lights": Variant("each cross-view render twice, under the view's light (eq. 8) and under the prediction's own",
+                           {"cross_view_light": "both"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

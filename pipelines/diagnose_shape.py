@@ -9,9 +9,13 @@ training's Laplacian weight and one of three signals:
 - ``silhouettes``: the soft-silhouette loss alone: what the outlines hold;
 - ``image``: the training's image, gradient and silhouette losses against the Cycles views, rendered with the
   GT material and the GT env map's 32-lobe SG fit while an albedo texture is fitted alongside: what shading holds
-  when the light is known.
+  when the light is known;
+- ``image-from-normals``: the same, starting from the ``normals`` fit (the shape held while the albedo settles,
+  for the first third of the steps): whether the image losses keep normals the template can carry.
 
-The predicted normals' error is then measured as ``make eval`` measures it (``metrics.normal_error_deg``: per
+The image rows also give the image L1 the fit reached and the GT scene's (GT mesh, texture and material under
+the same light) against the same views: where the fit's is lower, the image loss prefers a wrong shape to
+the true one. The predicted normals' error is then measured as ``make eval`` measures it (``metrics.normal_error_deg``: per
 view, the median angle over the pixels both surfaces cover), median over views and objects. A trained run's
 error sits between these rows; docs/experiments.md (entry 14) reads them.
 """
@@ -38,7 +42,7 @@ from .config import TrainConfig
 from .losses import foreground_l1, gradient_loss, hdr_srgb, soft_iou_loss
 from .model import Encoder, ModelConfig
 
-SIGNALS = ("normals", "silhouettes", "image")
+SIGNALS = ("normals", "silhouettes", "image", "image-from-normals")
 
 
 def object_views(ds: MultiViewDataset, obj: int, env: int) -> tuple[Cameras, torch.Tensor]:
@@ -48,13 +52,21 @@ def object_views(ds: MultiViewDataset, obj: int, env: int) -> tuple[Cameras, tor
     return cameras, torch.stack([ds.view_image(obj, env, v) for v in range(ds.num_views)])
 
 
+def image_l1(rgb: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
+    """The training's image term: foreground L1 in its HDR-aware display space."""
+    return foreground_l1(hdr_srgb(rgb), hdr_srgb(images[..., :3]), images[..., 3])
+
+
 def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tensor, gt_normals, material: dict,
-              light, steps: int, weights: TrainConfig) -> torch.Tensor:
-    """The model's shape parameters fitted to one object's views with ``signal``; returns its vertices (1, V, 3)."""
+              light, steps: int, weights: TrainConfig, start: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, float | None]:
+    """The model's shape parameters (1, 3V + 3) fitted to one object's views with ``signal`` from ``start`` (the
+    template sphere when None), and for the image signal the image L1 its last step reached."""
     n = len(images)
-    raw = model.shape_head.bias.detach().clone()[None].requires_grad_(True)  # the template sphere
+    raw = (model.shape_head.bias.detach()[None] if start is None else start).clone().requires_grad_(True)
     params = [raw]
-    if signal == "image":
+    image = signal.startswith("image")
+    if image:
         c = model.config
         texture = torch.zeros(1, c.texture_height, c.texture_width, 3, requires_grad=True)  # albedo 0.5
         params.append(texture)
@@ -68,12 +80,12 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
         verts = model._shape(raw)
         meshes = model.template().with_verts(verts.expand(n, -1, -1))
         smooth = weights.w_laplacian * laplacian_smoothness(verts, laplacian) / model.config.template_radius ** 2
-        if signal == "image":
+        if image:
             albedo = torch.sigmoid(texture).expand(n, -1, -1, -1)
             out = renderer(meshes, cameras, Material(albedo=albedo, wrap_u=True, **material), light)
-            rgb, target = hdr_srgb(out.rgb), hdr_srgb(images[..., :3])
-            loss = (weights.w_image * foreground_l1(rgb, target, images[..., 3])
-                    + weights.w_gradient * gradient_loss(rgb, target * images[..., 3:]))
+            reached = image_l1(out.rgb, images)
+            loss = (weights.w_image * reached
+                    + weights.w_gradient * gradient_loss(hdr_srgb(out.rgb), hdr_srgb(images[..., :3]) * images[..., 3:]))
         else:
             out = renderer.render_normals(meshes, cameras)
             loss = torch.zeros(())
@@ -84,8 +96,10 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
         loss = loss + weights.w_iou * soft_iou_loss(out.silhouette, images[..., 3]) + smooth
         opt.zero_grad()
         loss.backward()
+        if start is not None and image and step < steps // 3:
+            raw.grad = None  # the albedo settles on the given shape before the shape moves
         opt.step()
-    return model._shape(raw).detach()
+    return raw.detach(), float(reached) if image else None
 
 
 def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[list]:
@@ -97,6 +111,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[li
         raise DataError(f"{dataset}: no test objects to fit")
     errors = {s: [] for s in signals}
     within = {s: [] for s in signals}
+    reached = {s: [] for s in (*signals, "gt")}
     renderer = Renderer("sg")
     for k, obj in enumerate(samples):
         env = next(e for o, e in ds.samples if o == obj)
@@ -106,10 +121,23 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[li
         m = ds.materials[obj]
         material = dict(roughness=float(m["roughness"]), metallic=float(m["metallic"]),
                         specular=float(m["specular_ior_level"]))
-        light = fit_sg_to_envmap(EnvMap(ds.envmap(env)[None]), 32) if "image" in signals else None
+        light = None
+        if any(s.startswith("image") for s in signals):
+            light = fit_sg_to_envmap(EnvMap(ds.envmap(env)[None]), 32)
+            with torch.no_grad():  # the GT scene under the same light: where the image loss would sit at the truth
+                gt_albedo = ds.texture(obj)[None].expand(len(images), -1, -1, -1)
+                out = renderer(ds.mesh(obj).expand(len(images)), cameras, Material(albedo=gt_albedo, **material), light)
+                reached["gt"].append(float(image_l1(out.rgb, images)))
+        fits = {}
         for signal in signals:
             start = time.time()
-            verts = fit_shape(model, signal, cameras, images, gt, material, light, steps, weights)
+            if signal == "image-from-normals" and "normals" not in fits:
+                fits["normals"], _ = fit_shape(model, "normals", cameras, images, gt, material, light, steps, weights)
+            fits[signal], l1 = fit_shape(model, signal, cameras, images, gt, material, light, steps, weights,
+                                         start=fits["normals"] if signal == "image-from-normals" else None)
+            verts = model._shape(fits[signal])
+            if l1 is not None:
+                reached[signal].append(l1)
             with torch.no_grad():
                 pred = renderer.render_normals(model.template().with_verts(verts.expand(len(images), -1, -1)), cameras)
             deg, share = metrics.normal_error_deg(pred.rgb[..., :3], pred.alpha, gt.rgb[..., :3], gt.alpha)
@@ -117,8 +145,12 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[li
             within[signal].append(share.nanmean())
             print(f"object {obj} ({k + 1}/{len(samples)}), {signal}: normals {float(deg.nanmedian()):.1f} deg "
                   f"({time.time() - start:.0f} s)", file=sys.stderr, flush=True)
-    return [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}"]
+    mean_l1 = {k: f"{sum(v) / len(v):.3f}" if v else "" for k, v in reached.items()}
+    rows = [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}", mean_l1[s]]
             for s in signals]
+    if reached["gt"]:
+        rows.append(["(the GT mesh, texture and material under the same light)", "0", "100%", mean_l1["gt"]])
+    return rows
 
 
 def main(argv=None) -> int:
@@ -140,7 +172,7 @@ def main(argv=None) -> int:
         rows = diagnose(args.dataset, args.objects, args.steps, signals)
     except DataError as e:
         ap.error(str(e))
-    print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°"], rows))
+    print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°", "image L1"], rows))
     return 0
 
 

@@ -39,11 +39,15 @@ def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) ->
         # nothing (they move between views), so they have to come from the light and the specular lobe
         keep = src != dst
         src, dst = src[keep], dst[keep]
-    lit_by = src.clone() if config.own_light else dst.clone()
+    lit_by = dst.clone()
     cross = src != dst
     partner_view = 2 * partner[dst // 2] + dst % 2  # the same view of the render's partner item
-    # own_light: a prediction's light, read from its own view, lights it in the other view too: one world light
-    # has to explain the highlights of both views, where the light of the view itself can follow wrong normals
+    if config.cross_view_light == "own":
+        # ... lit by the prediction's own light, read from its own view: one world light has to explain the
+        # highlights of both views, where the light read from the other view can follow its wrong normals
+        lit_by[cross] = src[cross]
+    elif config.cross_view_light == "both":  # ... under each of the two lights (the cross-view renders twice)
+        src, dst, lit_by = torch.cat([src, src[cross]]), torch.cat([dst, dst[cross]]), torch.cat([lit_by, src[cross]])
     if config.shared_light:
         # ... but across views with the light predicted from the partner: another object under the same
         # env map. One world light must then light both objects, so it cannot carry one object's blur or

@@ -256,14 +256,22 @@ def test_paper_presets_generate_and_train(tmp_path):
     assert state["iteration"] == 2 and state["model_config"]["image_size"] == 256
 
 
-def test_own_light_lights_each_render_with_its_predictions_light():
+def test_cross_view_renders_are_lit_by_the_views_light_the_predictions_own_or_both():
     from pipelines.objective import render_plan
     partner = torch.tensor([1, 0])
-    default = render_plan(2, partner, TrainConfig())
-    own = render_plan(2, partner, TrainConfig(own_light=True))
-    assert torch.equal(own.src, default.src) and torch.equal(own.dst, default.dst)
-    assert torch.equal(default.lit_by, default.dst) and torch.equal(own.lit_by, own.src)
-    assert (own.src != own.dst).any()  # the cross-view renders are the ones that change
-    for other in ("shared_light", "swap_light"):
-        with pytest.raises(ConfigError, match="choose one"):
-            TrainConfig(own_light=True, **{other: True}).validate()
+    view = render_plan(2, partner, TrainConfig())
+    own = render_plan(2, partner, TrainConfig(cross_view_light="own"))
+    both = render_plan(2, partner, TrainConfig(cross_view_light="both"))
+    assert torch.equal(view.lit_by, view.dst)  # eq. 8
+    assert torch.equal(own.src, view.src) and torch.equal(own.dst, view.dst)
+    cross = view.src != view.dst
+    assert cross.any() and torch.equal(own.lit_by[cross], own.src[cross]) and torch.equal(own.lit_by[~cross], own.dst[~cross])
+    # both: eq. 8's renders, then the cross-view ones again under their own light
+    n = len(view.src)
+    assert torch.equal(both.src[:n], view.src) and torch.equal(both.lit_by[:n], view.lit_by)
+    assert torch.equal(both.src[n:], view.src[cross]) and torch.equal(both.dst[n:], view.dst[cross])
+    assert torch.equal(both.lit_by[n:], view.src[cross])
+    for light in ("own", "both"):
+        for other in ("shared_light", "swap_light"):
+            with pytest.raises(ConfigError, match="choose one"):
+                TrainConfig(cross_view_light=light, **{other: True}).validate()
