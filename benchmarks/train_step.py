@@ -3,8 +3,8 @@
     python -m benchmarks.train_step --dataset data/glossy [--shading sg] [--iterations 20]
 
 Phases: data (drawing the batch from the decoded tensors), encoder (forward), render + losses
-(eq. 8: 32 renders of 64x64 for 8 objects x 2 views), backward, optimiser step. Prints a table and
-writes Markdown/CSV under --out.
+(eq. 8 and the cross-view renders again under their own light: 48 renders of 64x64 for 8 objects x 2 views),
+backward, optimiser step. Prints a table and writes Markdown/CSV under --out.
 """
 from __future__ import annotations
 

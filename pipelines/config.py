@@ -66,13 +66,11 @@ class TrainConfig:
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
-    shape_detail: str = _opt("none", "a per-vertex offset from what the input shows where each vertex of the global "
-                             "shape projects (projected), or none", ("none", "projected"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
-    cross_view_light: str = _opt("view", "the light of a prediction's render in the other view of its pair: the light "
+    cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), its own (one world light for both views), or both "
-                                 "(a render under each)", ("view", "own", "both"))
+                                 "(a render under each)", ("both", "view", "own"))
     swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
     light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
@@ -196,7 +194,7 @@ VARIANTS: dict[str, Variant] = {
                        {"visibility": "edge_aa"}),
     "log-light": Variant("light scales exponential in the head's output", {"light_scale": "log"}),
     "shared-light": Variant("cross-view renders lit by another object's light under the same map (log scales)",
-                            {"light_scale": "log", "shared_light": True}),
+                            {"light_scale": "log", "shared_light": True, "cross_view_light": "view"}),
     "cross-view": Variant("image losses only on renders in the other view of each pair", {"cross_view_only": True}),
     "albedo-consistency": Variant("L1 between the albedos of an object's two views, weight 1",
                                   {"w_albedo_consistency": 1.0}),
@@ -213,9 +211,9 @@ VARIANTS: dict[str, Variant] = {
     "flat-albedo-1500": Variant("the flat-albedo curriculum over the whole run", {"flat_albedo_iterations": 1500},
                                 kind="diagnostic"),
     "swap-light": Variant("cross-view renders of the same object under its other env map, lit by its light",
-                          {"swap_light": True}, runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
+                          {"swap_light": True, "cross_view_light": "view"}, runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
     "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
-                                   {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0}),
+                                   {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0, "cross_view_light": "view"}),
     "global-light": Variant("the paper's light head: the light regressed from the global code (no light probe)",
                             {"light_head": "global"}, runs=(("glossy", 0), ("metallic", 0))),
     "probe-light": Variant("the light read from the input through the predicted geometry, whatever the shading",
@@ -230,12 +228,11 @@ VARIANTS: dict[str, Variant] = {
                                {"w_laplacian": 0.005}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
-    "vertex-detail": Variant("the shape refined per vertex from the input's colour and features where it projects",
-                             {"shape_detail": "projected"}, runs=(("metallic", 0), ("glossy", 0))),
     "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",
                          {"cross_view_light": "own"}, runs=(("metallic", 0), ("glossy", 0))),
-    "both-lights": Variant("each cross-view render twice, under the view's light (eq. 8) and under the prediction's own",
-                           {"cross_view_light": "both"}, runs=(("metallic", 0), ("glossy", 0))),
+    "view-light": Variant("cross-view renders under the light read from the view they are in only (eq. 8; the default "
+                          "until 2026-11-25), not also under the prediction's own",
+                          {"cross_view_light": "view"}, runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

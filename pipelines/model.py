@@ -51,7 +51,7 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "shape_detail": ("none", "projected")}
+           "input_range": ("full", "clipped")}
 
 
 @dataclass
@@ -86,10 +86,6 @@ class ModelConfig:
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
     # clipped at 1, as an 8-bit picture shows it (versions up to 7)
     input_range: str = "full"
-    # none: the shape is the global code's | projected: plus a per-vertex offset from what the input shows where
-    # each vertex of that shape projects (its colour and features; the mirror vertex's too)
-    shape_detail: str = "none"
-    max_detail: float = 3.0  # bound of that offset (world units)
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -242,11 +238,6 @@ class Encoder(nn.Module):
         self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
                                      nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
-        if c.shape_detail == "projected":
-            seen = 4 + w + 2 * w + 1  # colour and alpha, stem and first backbone features, facing
-            self.vertex_code = nn.Linear(512, 32)
-            self.vertex_mlp = nn.Sequential(nn.Linear(2 * seen + 3 + 32, 128), nn.LeakyReLU(0.2, inplace=True),
-                                            nn.Linear(128, 128), nn.LeakyReLU(0.2, inplace=True), nn.Linear(128, 3))
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
@@ -262,9 +253,6 @@ class Encoder(nn.Module):
         c = self.config
         nn.init.zeros_(self.shape_head.weight)
         nn.init.zeros_(self.shape_head.bias)
-        if c.shape_detail == "projected":  # the detail starts at zero: the global shape
-            nn.init.zeros_(self.vertex_mlp[-1].weight)
-            nn.init.zeros_(self.vertex_mlp[-1].bias)
         with torch.no_grad():  # start at the template radius: the scale logit that gives scale 1
             lo, hi = c.scale_range
             self.shape_head.bias[-3:] = torch.logit(torch.tensor((1.0 - lo) / (hi - lo)))
@@ -308,33 +296,9 @@ class Encoder(nn.Module):
         lo, hi = c.scale_range
         scale = c.template_radius * (lo + (hi - lo) * torch.sigmoid(raw[:, -3:]))  # (B, 3)
         offsets = c.max_offset * torch.tanh(raw[:, :-3].view(b, -1, 3) / c.max_offset)
-        return self.template_dirs * scale.unsqueeze(1) + self._mirrored(offsets)
-
-    def _mirrored(self, offsets: torch.Tensor) -> torch.Tensor:
-        """Per-vertex offsets (B, V, 3) made symmetric about the XZ plane (when the model is)."""
-        if not self.config.symmetric:
-            return offsets
-        return 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
-
-    def _vertex_detail(self, verts: torch.Tensor, cameras: Cameras | None, images: torch.Tensor, stem: torch.Tensor,
-                       level1: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-        """A bounded offset per vertex from what the input shows where the vertex projects (colour, features,
-        how squarely it faces the camera), its mirror vertex's view (which may face the camera when it does
-        not) and its template direction: local evidence for the breaks a global code smooths over."""
-        if cameras is None:
-            raise ValueError("a projected shape detail needs the input cameras: call the encoder with cameras=...")
-        c = self.config
-        xy, _ = cameras.project(verts)
-        grid = torch.stack([xy[..., 0], -xy[..., 1]], -1).unsqueeze(2)  # (B, V, 1, 2)
-        seen = torch.cat([F.grid_sample(x, grid, align_corners=False, padding_mode="zeros") for x in (images, stem, level1)],
-                         1).squeeze(-1).mT  # (B, V, C)
-        to_cam = F.normalize(cameras.centers.to(verts).unsqueeze(1) - verts, dim=-1)
-        facing = (vertex_normals(verts, self.faces) * to_cam).sum(-1, keepdim=True).clamp_min(0)
-        seen = torch.cat([seen * (facing > 0), facing], -1)
-        b, v = verts.shape[:2]
-        x = torch.cat([seen, seen[:, self.mirror], self.template_dirs.expand(b, v, 3),
-                       self.vertex_code(f).unsqueeze(1).expand(b, v, -1)], -1)
-        return self._mirrored(c.max_detail * torch.tanh(self.vertex_mlp(x) / c.max_detail))
+        if c.symmetric:
+            offsets = 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
+        return self.template_dirs * scale.unsqueeze(1) + offsets
 
     def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor,
                  texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -402,11 +366,8 @@ class Encoder(nn.Module):
         c = self.config
         images = self.visible_input(images)
         stem = self.stem(images)
-        level1 = self.backbone[0](stem)  # (2w, S/4, S/4): kept for the shape detail's look-up
-        f = self.fc(self.backbone[1:](level1))
+        f = self.fc(self.backbone(stem))
         verts = self._shape(self.shape_head(f))
-        if c.shape_detail == "projected":
-            verts = verts + self._vertex_detail(verts.detach(), cameras, images, stem, level1, f)
         needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
         texture, facing = self._texture(f, stem, images, texels)

@@ -29,8 +29,9 @@ class RenderPlan:
 
 def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) -> RenderPlan:
     """Eq. 8: every prediction in both views of its pair, lit by the light predicted from the view it is rendered
-    in; the variants change who is rendered where (``cross_view_only``) or whose light and image the cross-view
-    renders use (``shared_light``, ``swap_light``)."""
+    in, and (``cross_view_light`` "both", the default) each cross-view render again under the prediction's own
+    light; the variants change who is rendered where (``cross_view_only``) or whose light and image the
+    cross-view renders use (``cross_view_light``, ``shared_light``, ``swap_light``)."""
     b = batch_items
     src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
     dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])

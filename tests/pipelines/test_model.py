@@ -82,30 +82,6 @@ def test_shape_is_mirror_symmetric_and_starts_at_the_template_radius():
     assert torch.allclose(v, mirrored, atol=1e-4)
 
 
-def test_vertex_detail_starts_at_the_global_shape_reads_the_input_and_stays_symmetric():
-    torch.manual_seed(0)
-    plain = Encoder(ModelConfig(image_size=32))
-    model = Encoder(ModelConfig(image_size=32, shape_detail="projected"))
-    missing, unexpected = model.load_state_dict(plain.state_dict(), strict=False)
-    assert not unexpected and all(k.startswith(("vertex_mlp", "vertex_code")) for k in missing)
-    images, cams = torch.rand(2, 4, 32, 32), _cams(2)
-    assert torch.equal(model(images, cams).verts, plain(images, cams).verts)  # zero detail at the start
-    with torch.no_grad():
-        model.vertex_mlp[-1].weight.normal_(0, 1.0)
-    detail = model(images, cams).verts - plain(images, cams).verts
-    assert detail.abs().max() > 0.1 and detail.abs().max() <= model.config.max_detail + 1e-4
-    mirrored = detail[:, model.mirror] * torch.tensor([1.0, -1.0, 1.0])
-    assert torch.allclose(detail, mirrored, atol=1e-5)
-    # what the vertices see moves them: the same views with another picture give another detail
-    picture = torch.rand(2, 4, 32, 32)
-    other = model(picture, cams).verts - plain(picture, cams).verts
-    assert not torch.allclose(detail, other, atol=1e-3)
-    model(images, cams).verts.square().sum().backward()
-    assert model.vertex_mlp[0].weight.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="cameras"):
-        model(images)
-
-
 def test_texels_follow_the_template_surface():
     model = Encoder(ModelConfig(image_size=32))
     c = model.config

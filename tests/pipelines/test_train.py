@@ -63,7 +63,7 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     """Log light scales, the light shared across objects, cross-view-only losses and the albedo consistency
     between an object's two views run and snapshot."""
     cfg = config(tiny_glossy, tmp_path / "abl", lobes=4, iterations=4, light_scale="log", shared_light=True,
-                 cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0, w_albedo_darker=1.0)
+                 cross_view_light="view", cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0, w_albedo_darker=1.0)
     train(cfg, progress=False)
     assert (tmp_path / "abl" / "snapshots" / "iter_000004.png").exists()
     model = make_model(cfg)
@@ -175,7 +175,7 @@ def test_shared_light_partners_are_other_objects_under_the_same_env_map(tiny_glo
 
 
 def test_swap_light_renders_each_prediction_against_the_same_object_under_its_other_env_map(tiny_glossy_two_maps):
-    cfg = config(tiny_glossy_two_maps, "unused", lobes=4, swap_light=True)
+    cfg = config(tiny_glossy_two_maps, "unused", lobes=4, swap_light=True, cross_view_light="view")
     data = TrainingData(cfg.dataset, cfg.image_size)
     obj, env = data.object_of_sample, data.envmap_of_sample
     for it in range(5):
@@ -259,7 +259,8 @@ def test_paper_presets_generate_and_train(tmp_path):
 def test_cross_view_renders_are_lit_by_the_views_light_the_predictions_own_or_both():
     from pipelines.objective import render_plan
     partner = torch.tensor([1, 0])
-    view = render_plan(2, partner, TrainConfig())
+    view = render_plan(2, partner, TrainConfig(cross_view_light="view"))
+    assert TrainConfig().cross_view_light == "both"
     own = render_plan(2, partner, TrainConfig(cross_view_light="own"))
     both = render_plan(2, partner, TrainConfig(cross_view_light="both"))
     assert torch.equal(view.lit_by, view.dst)  # eq. 8
