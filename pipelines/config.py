@@ -211,9 +211,11 @@ VARIANTS: dict[str, Variant] = {
     "flat-albedo-1500": Variant("the flat-albedo curriculum over the whole run", {"flat_albedo_iterations": 1500},
                                 kind="diagnostic"),
     "swap-light": Variant("cross-view renders of the same object under its other env map, lit by its light",
-                          {"swap_light": True, "cross_view_light": "view"}, runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
+                          {"swap_light": True, "cross_view_light": "view"},
+                          runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
     "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
-                                   {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0, "cross_view_light": "view"}),
+                                   {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0,
+                                    "cross_view_light": "view"}),
     "global-light": Variant("the paper's light head: the light regressed from the global code (no light probe)",
                             {"light_head": "global"}, runs=(("glossy", 0), ("metallic", 0))),
     "probe-light": Variant("the light read from the input through the predicted geometry, whatever the shading",
@@ -232,7 +234,8 @@ VARIANTS: dict[str, Variant] = {
                          {"cross_view_light": "own"}, runs=(("metallic", 0), ("glossy", 0))),
     "view-light": Variant("cross-view renders under the light read from the view they are in only (eq. 8; the default "
                           "until 2026-11-25), not also under the prediction's own",
-                          {"cross_view_light": "view"}, runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
+                          {"cross_view_light": "view"},
+                          runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

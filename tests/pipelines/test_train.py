@@ -63,7 +63,8 @@ def test_the_light_ablations_train(tiny_glossy, tmp_path):
     """Log light scales, the light shared across objects, cross-view-only losses and the albedo consistency
     between an object's two views run and snapshot."""
     cfg = config(tiny_glossy, tmp_path / "abl", lobes=4, iterations=4, light_scale="log", shared_light=True,
-                 cross_view_light="view", cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0, w_albedo_darker=1.0)
+                 cross_view_light="view", cross_view_only=True, batch_objects=4, w_albedo_consistency=1.0,
+                 w_albedo_darker=1.0)
     train(cfg, progress=False)
     assert (tmp_path / "abl" / "snapshots" / "iter_000004.png").exists()
     model = make_model(cfg)
@@ -266,7 +267,8 @@ def test_cross_view_renders_are_lit_by_the_views_light_the_predictions_own_or_bo
     assert torch.equal(view.lit_by, view.dst)  # eq. 8
     assert torch.equal(own.src, view.src) and torch.equal(own.dst, view.dst)
     cross = view.src != view.dst
-    assert cross.any() and torch.equal(own.lit_by[cross], own.src[cross]) and torch.equal(own.lit_by[~cross], own.dst[~cross])
+    assert cross.any() and torch.equal(own.lit_by[cross], own.src[cross])
+    assert torch.equal(own.lit_by[~cross], own.dst[~cross])
     # both: eq. 8's renders, then the cross-view ones again under their own light
     n = len(view.src)
     assert torch.equal(both.src[:n], view.src) and torch.equal(both.lit_by[:n], view.lit_by)
