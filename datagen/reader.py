@@ -165,6 +165,12 @@ class MultiViewDataset(torch.utils.data.Dataset):
                 raise DataError(f"{p}: invalid mesh ({e})") from e
         return self._cached(("mesh", obj), load)
 
+    def material_params(self, obj: int) -> dict:
+        """The object's scalar material as the renderer's ``Material`` takes it (roughness, metallic, specular: the
+        Principled BSDF's specular IOR level)."""
+        m = self.materials[obj]
+        return dict(roughness=float(m["roughness"]), metallic=float(m["metallic"]), specular=float(m["specular_ior_level"]))
+
     def texture(self, obj: int) -> torch.Tensor:
         """Ground-truth albedo texture (S, S, 3), linear (decoded from the sRGB PNG), top row first."""
         return self._cached(("tex", obj), lambda: torch.from_numpy(

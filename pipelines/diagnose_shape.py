@@ -83,9 +83,9 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
         if image:
             albedo = torch.sigmoid(texture).expand(n, -1, -1, -1)
             out = renderer(meshes, cameras, Material(albedo=albedo, wrap_u=True, **material), light)
-            reached = image_l1(out.rgb, images)
-            loss = (weights.w_image * reached
-                    + weights.w_gradient * gradient_loss(hdr_srgb(out.rgb), hdr_srgb(images[..., :3]) * images[..., 3:]))
+            rgb, target = hdr_srgb(out.rgb), hdr_srgb(images[..., :3])
+            reached = foreground_l1(rgb, target, images[..., 3])
+            loss = weights.w_image * reached + weights.w_gradient * gradient_loss(rgb, target * images[..., 3:])
         else:
             out = renderer.render_normals(meshes, cameras)
             loss = torch.zeros(())
@@ -118,9 +118,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[li
         cameras, images = object_views(ds, obj, env)
         with torch.no_grad():
             gt = renderer.render_normals(ds.mesh(obj).expand(len(images)), cameras)
-        m = ds.materials[obj]
-        material = dict(roughness=float(m["roughness"]), metallic=float(m["metallic"]),
-                        specular=float(m["specular_ior_level"]))
+        material = ds.material_params(obj)
         light = None
         if any(s.startswith("image") for s in signals):
             light = fit_sg_to_envmap(EnvMap(ds.envmap(env)[None]), 32)

@@ -97,9 +97,7 @@ def run_dataset(dataset: str, out: Path, s: Sizes) -> str:
     figure = None
     for obj, env in ds.samples[::step][: s.objects]:
         mesh = ds.mesh(obj).expand(n_views)
-        m = ds.materials[obj]
-        params = dict(roughness=float(m["roughness"]), metallic=float(m["metallic"]),
-                      specular=float(m["specular_ior_level"]))
+        params = ds.material_params(obj)
         light = EnvMap(ds.envmap(env)[None])
         for name, elevations in setups.items():
             cams = Cameras.orbit(cam.distance, elevations, azimuths, cam.fov_deg, ds.resolution)
