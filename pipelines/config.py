@@ -40,6 +40,9 @@ class TrainConfig:
     iterations: int = _opt(1500, "training iterations", minimum=1)
     batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
     lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
+    lr_schedule: str = _opt("constant", "the learning rate over the run: constant, or constant for two thirds and then "
+                            "a cosine decay to zero over the last third (settle, not jitter, at the end)",
+                            ("constant", "cosine-tail"))
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
     w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
@@ -236,6 +239,8 @@ VARIANTS: dict[str, Variant] = {
                           "until 2026-11-25), not also under the prediction's own",
                           {"cross_view_light": "view"},
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
+    "cosine-tail": Variant("the learning rate decays to zero (cosine) over the last third of the run instead of staying "
+                           "constant", {"lr_schedule": "cosine-tail"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

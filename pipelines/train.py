@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import sys
 import time
@@ -47,6 +48,26 @@ def check_finite_gradients(model) -> None:
     for name, p in model.named_parameters():
         if p.grad is not None and not torch.isfinite(p.grad).all():
             raise FloatingPointError(f"the gradient of {name} became non-finite; stopping (the last good checkpoint is kept)")
+
+
+def learning_rate_factor(schedule: str, iteration: int, iterations: int) -> float:
+    """The multiple of the base learning rate at (0-based) ``iteration`` of a run of ``iterations``: 1 for
+    "constant"; for "cosine-tail" 1 over the first two thirds, then a cosine down to 0 over the last third (a
+    resumed run given more iterations continues on the longer run's schedule)."""
+    if schedule == "constant":
+        return 1.0
+    start = 2 * iterations // 3
+    if iteration < start:
+        return 1.0
+    return 0.5 * (1 + math.cos(math.pi * (iteration - start) / max(1, iterations - start)))
+
+
+def set_learning_rate(opt: torch.optim.Optimizer, config: TrainConfig, iteration: int) -> None:
+    """Each parameter group's learning rate at ``iteration``: its base ("initial_lr", saved with the optimiser's
+    state, so a resumed run keeps it) times the schedule's factor."""
+    factor = learning_rate_factor(config.lr_schedule, iteration, config.iterations)
+    for group in opt.param_groups:
+        group["lr"] = group.setdefault("initial_lr", group["lr"]) * factor
 
 
 # ----------------------------------------------------------------------------- run
@@ -136,6 +157,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         opt.zero_grad(set_to_none=True)
         total.backward()
         check_finite_gradients(model)
+        if config.lr_schedule != "constant":  # the default's optimiser state stays what it was
+            set_learning_rate(opt, config, it)
         opt.step()
         done = it + 1
         if rank == 0:

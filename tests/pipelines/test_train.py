@@ -14,7 +14,7 @@ from pipelines.dataset import TrainingViews
 from pipelines.losses import albedo_detail, darker_view_albedo_loss, with_albedo_detail
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
-from pipelines.train import train
+from pipelines.train import learning_rate_factor, train
 
 
 def TrainingData(root, image_size, **kw):  # noqa: N802 (the training split's tensors, as train() builds them)
@@ -206,6 +206,39 @@ def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
     a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)["model"]
     b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_cosine_tail_holds_the_rate_for_two_thirds_then_decays_to_zero():
+    n = 1500
+    factors = [learning_rate_factor("cosine-tail", i, n) for i in range(n)]
+    assert factors[:1000] == [1.0] * 1000 and factors[1000] == 1.0
+    assert all(a >= b for a, b in zip(factors, factors[1:])) and factors[-1] < 1e-4
+    assert factors[1250] == pytest.approx(0.5, abs=1e-3)  # the cosine's midpoint
+    assert {learning_rate_factor("constant", i, n) for i in range(n)} == {1.0}
+
+
+def test_a_killed_cosine_tail_run_resumes_bit_for_bit(tiny_glossy, tmp_path, monkeypatch):
+    import pipelines.train as train_module
+
+    cfg = lambda out: config(tiny_glossy, tmp_path / out, shading="sg", lobes=4, lr_schedule="cosine-tail")  # noqa: E731
+    train(cfg("full"), progress=False)
+
+    class Killed(Exception):
+        pass
+
+    def save_then_die(path, model, opt, done, conf, _save=train_module.save_checkpoint):
+        _save(path, model, opt, done, conf)
+        if done == 4:
+            raise Killed  # a run killed right after its checkpoint at iteration 4 of 8, with the rate still full
+    with monkeypatch.context() as m:
+        m.setattr(train_module, "save_checkpoint", save_then_die)
+        with pytest.raises(Killed):
+            train(cfg("part"), progress=False)
+    train(cfg("part"), resume=True, progress=False)
+    a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)
+    assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+    assert [g["lr"] for g in b["optimizer"]["param_groups"]] == [pytest.approx(1e-3 * learning_rate_factor("cosine-tail", 7, 8))]
 
 
 def test_cli_errors_are_clear(tmp_path):
