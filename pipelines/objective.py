@@ -14,7 +14,7 @@ from dibrpp.mesh import laplacian_smoothness
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+                     hdr_srgb, laplacian_weight, soft_iou_loss, supervised_light_loss, with_albedo_detail)
 from .model_input import encoder_input
 
 
@@ -69,9 +69,10 @@ def batch_pairing(config: TrainConfig) -> str:
 
 
 def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
-               laplacian) -> tuple[dict, dict]:
+               laplacian, iteration: int | None = None) -> tuple[dict, dict]:
     """({term: value}, {term: weight}): eq. 8's image terms on the renders ``out`` against ``target``, the
-    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set."""
+    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set (``iteration``:
+    where the run is, for the weights that change over it)."""
     rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
     terms = {
         "image": foreground_l1(rgb, target_rgb, target[..., 3]),
@@ -79,7 +80,8 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
-    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
+    w_laplacian = laplacian_weight(config.w_laplacian, config.laplacian_decay, iteration, config.iterations)
+    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": w_laplacian, "gradient": config.w_gradient}
     if config.light_supervision:
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
@@ -112,7 +114,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
     out = renderer(shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
-    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
+    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, iteration)
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)
