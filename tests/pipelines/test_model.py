@@ -271,3 +271,46 @@ def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
     assert ((normals[:, centre] * to_camera[:, centre]).sum(-1) > 0.95).all()
     with pytest.raises(ValueError, match="pixels"):
         pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
+
+
+def test_the_splat_is_the_histogram_at_cell_centres_and_differentiable_between():
+    """splat_to_grid shares each sample among its four nearest cells: a sample at a cell's centre lands in that
+    cell alone (the histogram's answer), and between centres the grid has the gradient the histogram lacks."""
+    from pipelines.light_probe import scatter_to_grid, splat_to_grid
+    centres = equirect_directions(8, 16).reshape(1, -1, 3)[:, ::3]
+    values, weight = torch.rand(1, centres.shape[1], 3), torch.rand(1, centres.shape[1])
+    for got, want in zip(splat_to_grid(centres, values, weight, 8, 16), scatter_to_grid(centres, values, weight, 8, 16)):
+        torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+    torch.manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(1, 12, 3, dtype=torch.float64), dim=-1).requires_grad_()
+    v, w = torch.rand(1, 12, 3, dtype=torch.float64), torch.rand(1, 12, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda d: splat_to_grid(d, v, w, 8, 16)[0], (dirs,), eps=1e-7, atol=1e-5)
+
+
+def test_two_views_of_a_mirror_agree_through_its_own_normals_not_a_squashed_ones():
+    """A mirror sphere rendered (MC) under a sky with a sun from two views 90 degrees apart: read through the
+    sphere's own normals both views place what they show at the same world directions; through a sphere squashed
+    to half its height they disagree, and the disagreement has a gradient with respect to the vertices."""
+    from dibrpp.brdf import Material
+    from dibrpp.lights import EnvMap
+    from pipelines.light_probe import world_mirror_cue
+
+    dirs = equirect_directions(32, 64)
+    sun = torch.tensor([0.6, 0.3, 0.74])
+    sky = 0.2 + 0.8 * dirs[..., 2:].clamp_min(0) + 50.0 * ((dirs @ (sun / sun.norm())) > 0.97).float().unsqueeze(-1)
+    env = EnvMap((sky * torch.tensor([0.6, 0.8, 1.0]))[None])
+    sphere = icosphere(3, radius=10.0)
+    cams = Cameras.orbit(40.0, 20.0, torch.tensor([0.0, 90.0]), 40.0, 32)
+    mirror = Material(albedo=torch.ones(1, 3), roughness=0.0, metallic=1.0, specular=0.5)
+    rgba = Renderer("mc", spp=64, seed=0, compile=False)(sphere, cams, mirror, env).image.detach()
+    radiance, alpha = rgba[..., :3], rgba[..., 3]
+
+    def disagreement(mesh):
+        mean, cover = world_mirror_cue(mesh.expand(2), cams, radiance, alpha, 16, 32)
+        return losses.cue_disagreement((mean[:1], cover[:1]), (mean[1:], cover[1:]))
+
+    squashed = sphere.verts * torch.tensor([1.0, 1.0, 0.5])
+    assert disagreement(sphere) < 0.5 * disagreement(sphere.with_verts(squashed))
+    verts = squashed.clone().requires_grad_()
+    disagreement(sphere.with_verts(verts)).backward()
+    assert torch.isfinite(verts.grad).all() and verts.grad.abs().sum() > 0
