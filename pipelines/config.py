@@ -240,8 +240,8 @@ VARIANTS: dict[str, Variant] = {
                                "to fine, for sharper breaks once the shape has found its basin", {"laplacian_decay": 0.25},
                                runs=(("metallic", 0), ("glossy", 0))),
     "mirror-consistency": Variant("the shape's normals asked to place what both views of a pair show at the same mirror "
-                                  "directions (a differentiable splat of each view's cue; weight 0.1)",
-                                  {"w_mirror_consistency": 0.1}, runs=(("metallic", 0), ("glossy", 0))),
+                                  "directions (a differentiable splat of each view's cue; weight 0.5)",
+                                  {"w_mirror_consistency": 0.5}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
     "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",
