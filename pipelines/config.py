@@ -81,8 +81,6 @@ class TrainConfig:
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
     light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
                                   ("", "map", "probe"))
-    w_mirror_consistency: float = _opt(0.0, "weight of the disagreement between what an object's two views show at the "
-                                       "mirror directions of its predicted surface (a signal for its normals)", minimum=0.0)
     w_albedo_consistency: float = _opt(0.0, "L1 between the albedos predicted from an object's two views",
                                        minimum=0.0)
     w_albedo_darker: float = _opt(0.0, "albedo pulled down to the darker of an object's two views", minimum=0.0)
@@ -239,9 +237,6 @@ VARIANTS: dict[str, Variant] = {
     "laplacian-decay": Variant("the Laplacian weight falls from 0.02 to a quarter over the run's second half: coarse "
                                "to fine, for sharper breaks once the shape has found its basin", {"laplacian_decay": 0.25},
                                runs=(("metallic", 0), ("glossy", 0))),
-    "mirror-consistency": Variant("the shape's normals asked to place what both views of a pair show at the same mirror "
-                                  "directions (a differentiable splat of each view's cue; weight 0.5)",
-                                  {"w_mirror_consistency": 0.5}, runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
     "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",

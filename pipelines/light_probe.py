@@ -28,8 +28,6 @@ from dibrpp.mesh import Meshes
 from dibrpp.raster import RasterSettings, rasterize
 from dibrpp.renderer import build_gbuffer
 
-from .model_input import encode_colour
-
 # camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest step is ~3e-4 linear)
@@ -64,37 +62,10 @@ def scatter_to_grid(dirs: torch.Tensor, values: torch.Tensor, weight: torch.Tens
     cell = (row * width + col) + torch.arange(b, device=dirs.device).unsqueeze(1) * (height * width)
     sums = values.new_zeros(b * height * width, c + 1)
     sums.index_add_(0, cell.reshape(-1), torch.cat([values * weight.unsqueeze(-1), weight.unsqueeze(-1)], -1).reshape(-1, c + 1))
-    return _blurred_mean(sums.view(b, height, width, c + 1).permute(0, 3, 1, 2))
-
-
-def _blurred_mean(sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B, C + 1, H, W) weighted sums of values and their weights per cell -> the blurred weighted mean (B, C, H, W)
-    and the weight per cell relative to the mean (B, 1, H, W)."""
-    sums = _blur(sums, BLUR_CELLS)
-    total = sums[:, -1:]
+    sums = _blur(sums.view(b, height, width, c + 1).permute(0, 3, 1, 2), BLUR_CELLS)
+    total = sums[:, c:]
     mean_weight = total.mean((2, 3), keepdim=True).clamp_min(1e-8)
-    return sums[:, :-1] / total.clamp_min(1e-6 * mean_weight), total / mean_weight
-
-
-def splat_to_grid(dirs: torch.Tensor, values: torch.Tensor, weight: torch.Tensor, height: int,
-                  width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`scatter_to_grid` with each sample shared bilinearly among its four nearest cells, so that the grid
-    is differentiable with respect to the directions (wrap-around in azimuth, clamped at the poles)."""
-    b, n, c = values.shape
-    z = dirs[..., 2].clamp(-1 + 1e-6, 1 - 1e-6)  # acos has no gradient at the poles
-    x = ((0.5 - torch.atan2(dirs[..., 1], dirs[..., 0]) / (2 * math.pi)) % 1.0) * width - 0.5
-    y = torch.acos(z) / math.pi * height - 0.5
-    x0, y0 = x.floor().detach(), y.floor().detach()
-    fx, fy = x - x0, y - y0
-    sample = torch.cat([values * weight.unsqueeze(-1), weight.unsqueeze(-1)], -1)
-    base = torch.arange(b, device=dirs.device).unsqueeze(1) * (height * width)
-    sums = values.new_zeros(b * height * width, c + 1)
-    for dy, wy in ((0, 1 - fy), (1, fy)):
-        row = (y0 + dy).clamp(0, height - 1).long()
-        for dx, wx in ((0, 1 - fx), (1, fx)):
-            col = (x0 + dx).long() % width
-            sums = sums.index_add(0, (row * width + col + base).reshape(-1), (sample * (wy * wx).unsqueeze(-1)).reshape(-1, c + 1))
-    return _blurred_mean(sums.view(b, height, width, c + 1).permute(0, 3, 1, 2))
+    return sums[:, :c] / total.clamp_min(1e-6 * mean_weight), total / mean_weight
 
 
 # hard coverage only (the probe reads covered pixels), and the template is closed and wound outwards
@@ -123,16 +94,6 @@ def pixel_samples(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor,
 def mirror_directions(normals: torch.Tensor, to_camera: torch.Tensor) -> torch.Tensor:
     """Unit directions r = 2(n.v)n - v from which a mirror at normals n shows light to the camera (v: to it)."""
     return F.normalize(2 * (normals * to_camera).sum(-1, keepdim=True) * normals - to_camera, dim=-1, eps=1e-12)
-
-
-def world_mirror_cue(meshes: Meshes, cameras: Cameras, radiance: torch.Tensor, alpha: torch.Tensor, height: int,
-                     width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The input (``radiance`` (B, H, W, 3), ``alpha`` (B, H, W)) placed at the mirror directions of ``meshes`` seen
-    by ``cameras``, in the world frame and differentiable with respect to the meshes' vertices: ((B, 3, h, w) the
-    encoder's colour of what lands in each cell, (B, 1, h, w) the weight that reached it, relative to the mean).
-    Two views of one object under one env map give the same cue where both reach, if the normals are right."""
-    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
-    return splat_to_grid(mirror_directions(normals, to_camera), encode_colour(seen), weight, height, width)
 
 
 def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tensor, weight: torch.Tensor,

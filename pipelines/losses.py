@@ -61,14 +61,6 @@ def laplacian_weight(weight: float, decay: float, iteration: int | None, iterati
 
 # ----------------------------------------------------------------------------- terms of the named variants
 
-def cue_disagreement(cue: tuple[torch.Tensor, torch.Tensor], other: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
-    """Mean L1 between two mirror cues ((B, C, H, W) values, (B, 1, H, W) relative weights; light_probe.world_mirror_cue)
-    over the cells both reach, weighted by the lesser weight (held fixed, so that the shape cannot lower the term
-    by moving its samples out of the cells where the two disagree)."""
-    w = torch.minimum(cue[1], other[1]).clamp_max(1.0).detach()
-    return (w * (cue[0] - other[0]).abs().mean(1, keepdim=True)).sum() / w.sum().clamp_min(1e-6)
-
-
 def albedo_consistency_loss(texture: torch.Tensor) -> torch.Tensor:
     """L1 between the albedos predicted from an object's two views; texture (2B, Ht, Wt, 3), prediction 2i + j
     of item i, view j. Albedo is view-independent; reflections copied into the look-up move between views."""

@@ -13,11 +13,9 @@ from dibrpp import Cameras, Renderer
 from dibrpp.mesh import laplacian_smoothness
 
 from .config import TrainConfig
-from .losses import (albedo_consistency_loss, albedo_detail, cue_disagreement, darker_view_albedo_loss, foreground_l1,
-                     gradient_loss, hdr_srgb, laplacian_weight, soft_iou_loss, supervised_light_loss,
-                     with_albedo_detail)
-from .light_probe import world_mirror_cue
-from .model_input import encoder_input, input_radiance
+from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
+                     hdr_srgb, laplacian_weight, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+from .model_input import encoder_input
 
 
 @dataclass
@@ -84,9 +82,6 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     }
     w_laplacian = laplacian_weight(config.w_laplacian, config.laplacian_decay, iteration, config.iterations)
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": w_laplacian, "gradient": config.w_gradient}
-    if config.w_mirror_consistency:
-        terms["mirror_consistency"] = mirror_consistency(pred, batch["image"], views)
-        weights["mirror_consistency"] = config.w_mirror_consistency
     if config.light_supervision:
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
@@ -98,20 +93,6 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         terms["albedo_darker"] = darker_view_albedo_loss(pred.texture, pred.facing)
         weights["albedo_darker"] = config.w_albedo_darker
     return terms, weights
-
-
-def mirror_consistency(pred, images: torch.Tensor, views: Cameras) -> torch.Tensor:
-    """How differently each prediction's surface places what its own view and the other view of its pair show (the
-    same object under the same env map) at their mirror directions: zero where its normals are right. ``images``
-    (B, 2, S, S, 4); the gradient reaches the shape through the normals (light_probe.world_mirror_cue)."""
-    n = images.shape[0] * 2
-    own = torch.arange(n)
-    reads = torch.cat([own, own ^ 1])  # each prediction in its own view, then in its partner's
-    radiance, alpha = input_radiance(encoder_input(images.reshape(n, *images.shape[2:])[reads]))
-    c = pred.config
-    mean, cover = world_mirror_cue(pred.select(torch.cat([own, own])).meshes(), views[reads.tolist()], radiance, alpha,
-                                   c.env_height, c.env_width)
-    return cue_disagreement((mean[:n], cover[:n]), (mean[n:], cover[n:]))
 
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
