@@ -40,9 +40,9 @@ class TrainConfig:
     iterations: int = _opt(1500, "training iterations", minimum=1)
     batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
     lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
-    lr_schedule: str = _opt("constant", "the learning rate over the run: constant, or constant for two thirds and then "
-                            "a cosine decay to zero over the last third (settle, not jitter, at the end)",
-                            ("constant", "cosine-tail"))
+    lr_schedule: str = _opt("cosine-tail", "the learning rate over the run: constant for two thirds, then a cosine decay "
+                            "to zero over the last third (the weights settle instead of jittering at the end), or "
+                            "constant throughout", ("cosine-tail", "constant"))
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
     w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
@@ -170,6 +170,11 @@ class TrainConfig:
         return ", ".join(f"{k}={getattr(self, k)}" for k in EXPERIMENT_FIELDS if getattr(self, k) != getattr(default, k))
 
 
+# What a run whose config.json was written before a field existed was trained with (the field's value then, not
+# today's default), so that an old run reads, is labelled and is resumed as what it was.
+VALUES_BEFORE_FIELD = {"light_head": "global", "probe_start": "colour", "probe_samples": "texels",
+                       "input_range": "clipped", "cross_view_light": "view", "lr_schedule": "constant"}
+
 PRESETS = {
     "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min
     "smoke": dict(iterations=12, batch_objects=2, log_every=2, snapshot_every=6, checkpoint_every=4, spp=2),
@@ -245,8 +250,8 @@ VARIANTS: dict[str, Variant] = {
                           "until 2026-11-25), not also under the prediction's own",
                           {"cross_view_light": "view"},
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
-    "cosine-tail": Variant("the learning rate decays to zero (cosine) over the last third of the run instead of staying "
-                           "constant", {"lr_schedule": "cosine-tail"}, runs=(("metallic", 0), ("glossy", 0))),
+    "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third (the "
+                           "default until 2026-11-25)", {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

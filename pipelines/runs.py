@@ -24,7 +24,7 @@ from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
 from . import light_prior
-from .config import ConfigError, TrainConfig
+from .config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from .model import Encoder, ModelConfig
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
@@ -62,10 +62,14 @@ def read_json(path: Path, what: str):
 
 
 def load_config(run: Path) -> TrainConfig:
-    """The TrainConfig saved with a run, checked like any config."""
+    """The TrainConfig saved with a run, checked like any config; a field its file lacks (written before the field
+    existed) takes the value the run was trained with (config.VALUES_BEFORE_FIELD), not today's default."""
     path = Path(run) / CONFIG
     try:
-        return TrainConfig.from_dict(read_json(path, "run's configuration"))
+        saved = read_json(path, "run's configuration")
+        if not isinstance(saved, dict):
+            raise ConfigError(f"a config must be a JSON object of TrainConfig fields, got {type(saved).__name__}")
+        return TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved})
     except ConfigError as e:
         raise DataError(f"{path}: {e}") from e
 

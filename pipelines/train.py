@@ -32,7 +32,7 @@ from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
 from . import light_prior, runs
-from .config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides,
+from .config import (PRESETS, VALUES_BEFORE_FIELD, ConfigError, TrainConfig, add_config_arguments, config_overrides,
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
 from .objective import batch_pairing, multiview_losses
@@ -86,10 +86,11 @@ CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint
 
 def check_resumable(run: Path, config: TrainConfig) -> None:
     """Refuse to resume a run with other settings than it was trained with, naming them."""
-    saved = runs.load_config(run).to_dict()
-    written = runs.read_json(Path(run) / runs.CONFIG, "run's configuration")  # runs before a field lack it
+    saved = runs.load_config(run).to_dict()  # a field written before it existed reads as what the run had then
+    written = runs.read_json(Path(run) / runs.CONFIG, "run's configuration")
+    known = set(written) | set(VALUES_BEFORE_FIELD)  # fields added since with today's default as their old value: skip
     changed = [k for k, v in config.to_dict().items()
-               if k not in CHANGEABLE_ON_RESUME and k in written and saved.get(k) != v]
+               if k not in CHANGEABLE_ON_RESUME and k in known and saved.get(k) != v]
     if changed:
         diff = ", ".join(f"{k}: {saved.get(k)!r} -> {getattr(config, k)!r}" for k in changed)
         raise DataError(f"{run} was trained with other settings ({diff}); resume it with its own settings "

@@ -198,11 +198,12 @@ def test_swap_light_renders_each_prediction_against_the_same_object_under_its_ot
 
 
 def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
-    full = config(tiny_glossy, tmp_path / "full", shading="mc")
+    # a run of 4 iterations extended to 8 (a constant rate: the default's decay depends on the run's length)
+    full = config(tiny_glossy, tmp_path / "full", shading="mc", lr_schedule="constant")
     train(full, progress=False)
-    part = config(tiny_glossy, tmp_path / "part", shading="mc", iterations=4)
-    train(part, progress=False)  # a run killed after its checkpoint at iteration 4
-    train(config(tiny_glossy, tmp_path / "part", shading="mc"), resume=True, progress=False)
+    part = config(tiny_glossy, tmp_path / "part", shading="mc", iterations=4, lr_schedule="constant")
+    train(part, progress=False)
+    train(config(tiny_glossy, tmp_path / "part", shading="mc", lr_schedule="constant"), resume=True, progress=False)
     a = torch.load(tmp_path / "full" / "checkpoint.pt", weights_only=True)["model"]
     b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -248,6 +249,26 @@ def test_a_killed_cosine_tail_run_resumes_bit_for_bit(tiny_glossy, tmp_path, mon
     b = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)
     assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
     assert [g["lr"] for g in b["optimizer"]["param_groups"]] == [pytest.approx(1e-3 * learning_rate_factor("cosine-tail", 7, 8))]
+
+
+def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path):
+    """A config.json from before lr_schedule and cross_view_light existed loads with the values the run had then
+    (a constant rate, eq. 8's cross-view light), is labelled so, and refuses to resume under today's defaults."""
+    from pipelines.config import VALUES_BEFORE_FIELD
+    from pipelines.runs import load_config
+    from pipelines.train import check_resumable
+
+    old = TrainConfig(dataset="data/glossy").to_dict()
+    for name in ("lr_schedule", "cross_view_light"):
+        del old[name]
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    loaded = load_config(tmp_path)
+    assert (loaded.lr_schedule, loaded.cross_view_light) == ("constant", "view")
+    assert loaded.label() == "cross_view_light=view, lr_schedule=constant"
+    assert TrainConfig().lr_schedule == "cosine-tail" and set(VALUES_BEFORE_FIELD) <= set(TrainConfig().to_dict())
+    with pytest.raises(Exception, match="lr_schedule: 'constant' -> 'cosine-tail'"):
+        check_resumable(tmp_path, TrainConfig(dataset="data/glossy"))
+    check_resumable(tmp_path, TrainConfig(dataset="data/glossy", lr_schedule="constant", cross_view_light="view"))
 
 
 def test_cli_errors_are_clear(tmp_path):
