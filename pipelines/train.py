@@ -6,7 +6,7 @@
 
 Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape/texture/material/light
 from both views and renders every prediction in both views with the light of the view it is rendered
-in (eq. 8; :mod:`pipelines.objective`). Checkpoints are atomic; ``--resume`` continues bit-for-bit (batches
+in (eq. 8; :mod:`pipelines.objective`); Adam's rate decays over the run's last third (``lr_schedule``). Checkpoints are atomic; ``--resume`` continues bit-for-bit (batches
 are drawn from a generator seeded by (seed, iteration), and the RNG state is saved) and refuses changed
 settings. Every TrainConfig field is a flag; settings apply in the order preset < variant < --config < flags.
 """
@@ -158,7 +158,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         opt.zero_grad(set_to_none=True)
         total.backward()
         check_finite_gradients(model)
-        if config.lr_schedule != "constant":  # the default's optimiser state stays what it was
+        if config.lr_schedule != "constant":  # constant: the optimiser's state as before schedules existed
             set_learning_rate(opt, config, it)
         opt.step()
         done = it + 1
