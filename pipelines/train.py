@@ -8,7 +8,8 @@ Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape
 from both views and renders every prediction in both views with the light of the view it is rendered
 in (eq. 8; :mod:`pipelines.objective`); Adam's rate decays over the run's last third (``lr_schedule``).
 Checkpoints are atomic; ``--resume`` continues bit-for-bit (batches are drawn from a generator seeded by
-(seed, iteration), and the RNG state is saved) and refuses changed settings. Every TrainConfig field is a flag; settings apply in the order preset < variant < --config < flags.
+(seed, iteration), and the RNG state is saved) and refuses changed settings. Every TrainConfig field is a
+flag; settings apply in the order preset < variant < --config < flags.
 """
 from __future__ import annotations
 
