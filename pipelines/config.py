@@ -48,9 +48,6 @@ class TrainConfig:
     w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
     w_iou: float = _opt(1.0, "weight of the soft-silhouette IoU loss", minimum=0.0)
     w_laplacian: float = _opt(0.02, "weight of the Laplacian smoothness of the shape", minimum=0.0)
-    laplacian_decay: float = _opt(1.0, "the Laplacian weight at the end of the run as a multiple of w_laplacian; it falls "
-                                  "geometrically from the run's midpoint (coarse to fine: smooth while the shape finds "
-                                  "its basin, freer to sharpen its breaks after); 1 keeps it constant", above=0.0)
     w_gradient: float = _opt(0.5, "weight of the multi-scale image-gradient L1", minimum=0.0)
     log_every: int = _opt(10, "iterations between log rows", minimum=1)
     snapshot_every: int = _opt(250, "iterations between snapshot images", minimum=1)
@@ -239,9 +236,6 @@ VARIANTS: dict[str, Variant] = {
                            {"light_prior": "data/light-prior"}, runs=(("metallic", 0), ("glossy", 0))),
     "laplacian-0.005": Variant("the shape's Laplacian smoothness weight at a quarter (0.005): sharper breaks for the normals",
                                {"w_laplacian": 0.005}, runs=(("metallic", 0), ("glossy", 0))),
-    "laplacian-decay": Variant("the Laplacian weight falls from 0.02 to a quarter over the run's second half: coarse "
-                               "to fine, for sharper breaks once the shape has found its basin", {"laplacian_decay": 0.25},
-                               runs=(("metallic", 0), ("glossy", 0))),
     "clipped-input": Variant("the encoder sees the input clipped at 1, as an 8-bit picture shows it (not its EXR)",
                              {"input_range": "clipped"}, runs=(("metallic", 0), ("glossy", 0))),
     "own-light": Variant("each prediction rendered in both views under its own light: one world light for both views",

@@ -49,16 +49,6 @@ def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int 
     return total / scales
 
 
-def laplacian_weight(weight: float, decay: float, iteration: int | None, iterations: int) -> float:
-    """The Laplacian smoothness weight at (0-based) ``iteration``: ``weight`` over the first half of the run,
-    then falling geometrically to ``decay`` times it at the end (None: the trained model, the end's weight)."""
-    if decay == 1.0:
-        return weight
-    half = iterations / 2
-    progress = 1.0 if iteration is None else min(1.0, max(0.0, (iteration - half) / max(1.0, iterations - 1 - half)))
-    return weight * decay ** progress
-
-
 # ----------------------------------------------------------------------------- terms of the named variants
 
 def albedo_consistency_loss(texture: torch.Tensor) -> torch.Tensor:

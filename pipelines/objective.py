@@ -14,7 +14,7 @@ from dibrpp.mesh import laplacian_smoothness
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, laplacian_weight, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+                     hdr_srgb, soft_iou_loss, supervised_light_loss, with_albedo_detail)
 from .model_input import encoder_input
 
 
@@ -69,10 +69,9 @@ def batch_pairing(config: TrainConfig) -> str:
 
 
 def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
-               laplacian, iteration: int | None = None) -> tuple[dict, dict]:
+               laplacian) -> tuple[dict, dict]:
     """({term: value}, {term: weight}): eq. 8's image terms on the renders ``out`` against ``target``, the
-    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set (``iteration``:
-    where the run is, for the weights that change over it)."""
+    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set."""
     rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
     terms = {
         "image": foreground_l1(rgb, target_rgb, target[..., 3]),
@@ -80,8 +79,7 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
-    w_laplacian = laplacian_weight(config.w_laplacian, config.laplacian_decay, iteration, config.iterations)
-    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": w_laplacian, "gradient": config.w_gradient}
+    weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
     if config.light_supervision:
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
@@ -114,7 +112,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
     out = renderer(shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
-    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, iteration)
+    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)

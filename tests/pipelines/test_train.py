@@ -11,7 +11,7 @@ from datagen.reader import MultiViewDataset
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
-from pipelines.losses import albedo_detail, darker_view_albedo_loss, laplacian_weight, with_albedo_detail
+from pipelines.losses import albedo_detail, darker_view_albedo_loss, with_albedo_detail
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
@@ -216,15 +216,6 @@ def test_cosine_tail_holds_the_rate_for_two_thirds_then_decays_to_zero():
     assert all(a >= b for a, b in zip(factors, factors[1:])) and factors[-1] < 1e-4
     assert factors[1250] == pytest.approx(0.5, abs=1e-3)  # the cosine's midpoint
     assert {learning_rate_factor("constant", i, n) for i in range(n)} == {1.0}
-
-
-def test_laplacian_decay_holds_the_weight_for_half_the_run_then_falls_to_its_fraction():
-    n = 1500
-    w = [laplacian_weight(0.02, 0.25, i, n) for i in range(n)]
-    assert w[:751] == [0.02] * 751 and w[-1] == pytest.approx(0.005)
-    assert all(a > b for a, b in zip(w[751:], w[752:]))
-    assert laplacian_weight(0.02, 0.25, None, n) == pytest.approx(0.005)  # the trained model: the end's weight
-    assert {laplacian_weight(0.02, 1.0, i, n) for i in (0, 1000, None)} == {0.02}
 
 
 def test_a_killed_cosine_tail_run_resumes_bit_for_bit(tiny_glossy, tmp_path, monkeypatch):
