@@ -136,16 +136,16 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     start = restore(ckpt, model, opt) if ckpt.exists() else 0
     ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    if start >= config.iterations:  # before anything is written: a finished run's folder stays as it is
+        if rank == 0:
+            print(f"{out}: already trained ({start} iterations); nothing to do")
+        return {"model": model, "out": out}
     log = TrainingLog(out / runs.LOG, start) if rank == 0 else None
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         runs.save_config(out, config)
         runs.save_camera(out, ds.camera_setup)
         log.prepare()
-    if start >= config.iterations:
-        if rank == 0:
-            print(f"{out}: already trained ({start} iterations); nothing to do")
-        return {"model": model, "out": out}
     from tqdm import tqdm
 
     bar = tqdm(range(start, config.iterations), initial=start, total=config.iterations, disable=not progress or rank != 0,

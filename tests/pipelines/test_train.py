@@ -242,6 +242,15 @@ def test_a_killed_cosine_tail_run_resumes_bit_for_bit(tiny_glossy, tmp_path, mon
     assert [g["lr"] for g in b["optimizer"]["param_groups"]] == [pytest.approx(1e-3 * learning_rate_factor("cosine-tail", 7, 8))]
 
 
+def test_resuming_a_finished_run_leaves_its_folder_as_it_was(tiny_glossy, tmp_path, capsys):
+    run = tmp_path / "done"
+    train(config(tiny_glossy, run, lobes=4, iterations=4), progress=False)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    train(config(tiny_glossy, run, lobes=4, iterations=4, log_every=2), resume=True, progress=False)
+    assert "already trained" in capsys.readouterr().out
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+
+
 def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path):
     """A config.json from before lr_schedule and cross_view_light existed loads with the values the run had then
     (a constant rate, eq. 8's cross-view light), is labelled so, and refuses to resume under today's defaults."""
