@@ -66,10 +66,8 @@ def load_config(run: Path) -> TrainConfig:
     existed) takes the value the run was trained with (config.VALUES_BEFORE_FIELD), not today's default."""
     path = Path(run) / CONFIG
     try:
-        saved = read_json(path, "run's configuration")
-        if not isinstance(saved, dict):
-            raise ConfigError(f"a config must be a JSON object of TrainConfig fields, got {type(saved).__name__}")
-        return TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved})
+        saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
+        return TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved} if isinstance(saved, dict) else saved)
     except ConfigError as e:
         raise DataError(f"{path}: {e}") from e
 
