@@ -8,12 +8,16 @@ On the test views with a dominant light, the direction error (median, share with
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
   the predicted surface and through the GT mesh, from the input clipped at 1 (as an 8-bit picture shows it)
   and at its full dynamic range;
-- (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one.
+- (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one;
+- (SG light) the run's light with a sun added where the cue through its own surface is brightest above the
+  horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
+  would give, with the rough-metal probe's si-RMSE of both lights.
 
 Each row is a limit the light head works within; docs/experiments.md (entries 12 and 13) reads them.
 """
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -22,11 +26,13 @@ import torch
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.cli_args import Parser, positive_int
 from dibrpp.formatting import markdown_table
+from dibrpp.conventions import equirect_directions, equirect_solid_angles
 from dibrpp.io import DataError
+from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
 
 from . import metrics
-from .light_probe import camera_to_probe, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
+from .light_probe import camera_to_probe, cue_sun_power, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
 from .model import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
@@ -37,6 +43,24 @@ def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
     mean, cover = scatter_to_grid(mirror_directions(normals, to_camera), seen, weight, 32, 64)
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+
+
+SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
+
+
+def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
+    """``light`` (world-frame SG) plus a sun where the mirror cue of ``meshes`` is brightest above the horizon,
+    with the power the cue shows there above the sky's level."""
+    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
+    mirror = mirror_directions(normals, to_camera)
+    mean, cover = scatter_to_grid(mirror, seen, weight * (mirror[..., 2] > 0), 32, 64)
+    axis = metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+    cells = equirect_directions(32, 64).reshape(-1, 3)
+    power = cue_sun_power(torch.cat([mean, cover], 1), axis, cells, equirect_solid_angles(32, 64).expand(-1, 64).reshape(-1))
+    lam = torch.full((len(axis), 1), SUN_SHARPNESS)
+    frame = light.world_to_light
+    return SGLight(torch.cat([light.axis, (frame @ axis.unsqueeze(-1)).mT], 1), torch.cat([light.sharpness, lam], 1),
+                   torch.cat([light.amplitude, (power * lam / (2 * math.pi)).unsqueeze(1)], 1)).in_frame(frame)
 
 
 def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:
@@ -58,7 +82,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
     probe = model.config.light_head == "probe"
     ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
-    errors, shares = {}, []
+    errors, shares, probes = {}, [], {}
     with torch.no_grad():
         for start in range(0, len(views), 16):
             b = collate([ds[i] for i in views[start:start + 16]])
@@ -69,7 +93,15 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             pred = model(images, cams)
             gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
             clipped = input_radiance(clip_input(images))[0]  # as an 8-bit picture shows the view
-            found = {"the run's light": metrics.dominant_direction(pred.light(cams.world_to_camera).to_envmap(64, 128).image)[0]}
+            light = pred.light(cams.world_to_camera)
+            found = {"the run's light": metrics.dominant_direction(light.to_envmap(64, 128).image)[0]}
+            if isinstance(light, SGLight):
+                sunlit = with_cue_sun(light, pred.meshes(), cams, *input_radiance(model.visible_input(images)))
+                found["the run's light + a sun read off the cue (above the horizon)"] = metrics.dominant_direction(
+                    sunlit.to_envmap(64, 128).image)[0]
+                scene = metrics.ProbeScene(cams.world_to_camera)
+                for k, lit in (("the run's light", light), ("with the cue's sun", sunlit)):
+                    probes.setdefault(k, []).append(metrics.light_metrics(lit, EnvMap(env), scene)["probe_metal"])
             if model.config.input_range == "full":  # what it places from an 8-bit picture (a PNG given to predict)
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
@@ -100,6 +132,9 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
     if shares:
         rows.append(["(the sun lobe's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
+    if probes:
+        rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
+            f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", ""])
     return rows
 
 

@@ -299,6 +299,27 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
         heads["probe"](grid, torch.zeros(1, 4))
 
 
+def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pixel_above_the_horizon():
+    from dibrpp.lights import SGLight
+    from pipelines.diagnose_light import with_cue_sun
+    from pipelines.light_probe import mirror_directions
+
+    sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
+    radiance, alpha = torch.full((1, 24, 24, 3), 0.5), torch.ones(1, 24, 24)
+    normals, to_camera, _, weight = pixel_samples(sphere, cams, radiance, alpha)
+    mirror = mirror_directions(normals, to_camera)[0]
+    covered = weight[0] > 0
+    above = int(torch.nonzero(covered & (mirror[:, 2] > 0.4))[0])
+    below = int(torch.nonzero(covered & (mirror[:, 2] < -0.4))[0])
+    radiance.view(1, -1, 3)[0, above] = 500.0
+    radiance.view(1, -1, 3)[0, below] = 5000.0  # brighter, but below the horizon: a glint, not the sun
+    sky = SGLight(torch.tensor([[[0.0, 0.0, 1.0]]]), torch.tensor([[2.0]]), torch.ones(1, 1, 3))
+    lit = with_cue_sun(sky.in_frame(torch.eye(3)[None]), sphere, cams, radiance, alpha)
+    assert lit.axis.shape == (1, 2, 3)
+    assert math.degrees(math.acos(float(lit.axis[0, 1] @ mirror[above]))) < 8.0
+    assert (sg_integral(lit.sharpness, lit.amplitude)[0, 1] > 0).all()
+
+
 def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
     """The probe reads, at each pixel the predicted surface covers, the normal the renderer shades it with, the
     direction to the camera and what the input shows there; pixels it does not cover weigh nothing."""
