@@ -11,9 +11,7 @@ from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines import losses
-from dibrpp.conventions import equirect_solid_angles
-from dibrpp.sg import sg_integral
-from pipelines.light_probe import ProbeLightHead, compress_radiance, cue_sun_power, pixel_samples
+from pipelines.light_probe import compress_radiance, pixel_samples
 from pipelines.model import Encoder, ModelConfig, squash, white_balance
 from pipelines.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
 
@@ -252,72 +250,6 @@ def test_probe_light_starts_at_the_mirror_cue_and_places_it_in_the_world():
         pred = model(encoder_input(rgba), cams)
         env = pred.light(cams.world_to_camera).to_envmap(16, 32).image[0]
         assert env[:5].mean() > 5 * env[-5:].mean(), azimuth  # the top rows of the world map (+Z) are the bright ones
-
-
-def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
-    """A probe grid whose mirror cue is ``sky`` on every cell, covered, except cells {(row, col): radiance}."""
-    grid = torch.zeros(1, 8, h, w)
-    grid[:, :3], grid[:, 3] = sky, 1.0
-    for (r, c), v in cells.items():
-        grid[0, :3, r, c] = v
-    return grid
-
-
-def test_cue_sun_power_is_the_cues_excess_near_the_axis_on_a_hand_made_grid():
-    h, w = 16, 32
-    dirs = equirect_directions(h, w).reshape(-1, 3)
-    solid = equirect_solid_angles(h, w).expand(-1, w).reshape(-1)
-    grid = _probe_grid_with({(5, 10): 11.0, (5, 11): 6.0, (12, 25): 50.0})  # the last one far from the axis
-    axis = dirs[5 * w + 10][None]
-    expected = 10.0 * solid[5 * w + 10] + 5.0 * solid[5 * w + 11]
-    torch.testing.assert_close(cue_sun_power(grid, axis, dirs, solid), expected.expand(1, 3))
-    grid[0, 3, 5, 11] = 0.0  # a cell the object does not show holds no light
-    torch.testing.assert_close(cue_sun_power(grid, axis, dirs, solid), (10.0 * solid[5 * w + 10]).expand(1, 3))
-
-
-def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
-    """With sun="probe" a bright reflection below the horizon does not draw the sun, and the sun's power is at
-    least what the cue shows near it even when the head's own intensity says nothing; "learned" follows the head."""
-    torch.manual_seed(0)
-    h, w = 16, 32
-    grid = _probe_grid_with({(3, 8): 20.0, (12, 8): 200.0})  # a sun above, a brighter glint below the horizon
-    heads = {s: ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun=s) for s in ("learned", "probe")}
-    dirs = equirect_directions(h, w).reshape(-1, 3)
-    for head in heads.values():
-        with torch.no_grad():
-            head.sun.bias[1:] = -30.0  # a head that learnt to switch its sun off
-    with torch.no_grad():
-        light = {s: head(grid, torch.zeros(1, 4), torch.eye(3)[None]) for s, head in heads.items()}
-    up = light["probe"]["axis"][0, -1]
-    assert up[2] > 0.5 and float(up @ dirs[3 * w + 8]) > 0.95
-    assert light["learned"]["axis"][0, -1, 2] < -0.5  # the learned sun follows the brightest cell, glint or not
-    power = sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -1]
-    cue = cue_sun_power(grid, up[None], dirs, equirect_solid_angles(h, w).expand(-1, w).reshape(-1))[0]
-    assert (power >= 0.999 * cue).all() and (cue > 0).all()
-    assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
-    with pytest.raises(ValueError, match="probe_to_world"):
-        heads["probe"](grid, torch.zeros(1, 4))
-
-
-def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pixel_above_the_horizon():
-    from dibrpp.lights import SGLight
-    from pipelines.diagnose_light import with_cue_sun
-    from pipelines.light_probe import mirror_directions
-
-    sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
-    radiance, alpha = torch.full((1, 24, 24, 3), 0.5), torch.ones(1, 24, 24)
-    normals, to_camera, _, weight = pixel_samples(sphere, cams, radiance, alpha)
-    mirror = mirror_directions(normals, to_camera)[0]
-    covered = weight[0] > 0
-    above = int(torch.nonzero(covered & (mirror[:, 2] > 0.4))[0])
-    below = int(torch.nonzero(covered & (mirror[:, 2] < -0.4))[0])
-    radiance.view(1, -1, 3)[0, above] = 500.0
-    radiance.view(1, -1, 3)[0, below] = 5000.0  # brighter, but below the horizon: a glint, not the sun
-    sky = SGLight(torch.tensor([[[0.0, 0.0, 1.0]]]), torch.tensor([[2.0]]), torch.ones(1, 1, 3))
-    lit = with_cue_sun(sky.in_frame(torch.eye(3)[None]), sphere, cams, radiance, alpha)
-    assert lit.axis.shape == (1, 2, 3)
-    assert math.degrees(math.acos(float(lit.axis[0, 1] @ mirror[above]))) < 8.0
-    assert (sg_integral(lit.sharpness, lit.amplitude)[0, 1] > 0).all()
 
 
 def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():

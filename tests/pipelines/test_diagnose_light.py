@@ -1,0 +1,50 @@
+"""diagnose_light's sun read off the mirror cue, on hand-made cases with known answers."""
+import math
+
+import torch
+
+from dibrpp import Cameras
+from dibrpp.conventions import equirect_directions, equirect_solid_angles
+from dibrpp.lights import SGLight
+from dibrpp.mesh import icosphere
+from dibrpp.sg import sg_integral
+from pipelines.diagnose_light import cue_sun_power, with_cue_sun
+from pipelines.light_probe import mirror_directions, pixel_samples
+
+
+def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
+    """A probe grid whose mirror cue is ``sky`` on every cell, covered, except cells {(row, col): radiance}."""
+    grid = torch.zeros(1, 4, h, w)
+    grid[:, :3], grid[:, 3] = sky, 1.0
+    for (r, c), v in cells.items():
+        grid[0, :3, r, c] = v
+    return grid
+
+
+def test_cue_sun_power_is_the_cues_excess_near_the_axis_on_a_hand_made_grid():
+    h, w = 16, 32
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    solid = equirect_solid_angles(h, w).expand(-1, w).reshape(-1)
+    grid = _probe_grid_with({(5, 10): 11.0, (5, 11): 6.0, (12, 25): 50.0})  # the last one far from the axis
+    axis = dirs[5 * w + 10][None]
+    expected = 10.0 * solid[5 * w + 10] + 5.0 * solid[5 * w + 11]
+    torch.testing.assert_close(cue_sun_power(grid, axis, dirs, solid), expected.expand(1, 3))
+    grid[0, 3, 5, 11] = 0.0  # a cell the object does not show holds no light
+    torch.testing.assert_close(cue_sun_power(grid, axis, dirs, solid), (10.0 * solid[5 * w + 10]).expand(1, 3))
+
+
+def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pixel_above_the_horizon():
+    sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
+    radiance, alpha = torch.full((1, 24, 24, 3), 0.5), torch.ones(1, 24, 24)
+    normals, to_camera, _, weight = pixel_samples(sphere, cams, radiance, alpha)
+    mirror = mirror_directions(normals, to_camera)[0]
+    covered = weight[0] > 0
+    above = int(torch.nonzero(covered & (mirror[:, 2] > 0.4))[0])
+    below = int(torch.nonzero(covered & (mirror[:, 2] < -0.4))[0])
+    radiance.view(1, -1, 3)[0, above] = 500.0
+    radiance.view(1, -1, 3)[0, below] = 5000.0  # brighter, but below the horizon: a glint, not the sun
+    sky = SGLight(torch.tensor([[[0.0, 0.0, 1.0]]]), torch.tensor([[2.0]]), torch.ones(1, 1, 3))
+    lit = with_cue_sun(sky.in_frame(torch.eye(3)[None]), sphere, cams, radiance, alpha)
+    assert lit.axis.shape == (1, 2, 3)
+    assert math.degrees(math.acos(float(lit.axis[0, 1] @ mirror[above]))) < 8.0
+    assert (sg_integral(lit.sharpness, lit.amplitude)[0, 1] > 0).all()
