@@ -69,6 +69,10 @@ class TrainConfig:
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
+    sun_lobe: str = _opt("learned", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
+                         "at least what the mirror cue shows near its axis above the sky's level, with its axis above "
+                         "the horizon, and its highlight not bending the surface it was read through (probe)",
+                         ("learned", "probe"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
@@ -246,6 +250,9 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third (the "
                            "default until 2026-11-25)", {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
+    "probe-sun": Variant("the probe head's sun above the horizon with at least the power the mirror cue shows near "
+                         "its axis (the loss cannot switch it off), shading a surface held fixed", {"sun_lobe": "probe"},
+                         runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

@@ -32,7 +32,7 @@ from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
 
 from . import metrics
-from .light_probe import camera_to_probe, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
+from .light_probe import camera_to_probe, cue_sun_power, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
 from .model import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
@@ -45,20 +45,7 @@ def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
 
 
-SUN_CONE_DEG = 20.0  # the cue's radiance this close to the sun's axis is the sun's (metrics.dominant_direction's cone)
 SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
-
-
-def cue_sun_power(grid: torch.Tensor, axis: torch.Tensor, cell_dirs: torch.Tensor,
-                  solid_angle: torch.Tensor) -> torch.Tensor:
-    """(B, 3) the power the mirror cue of ``grid`` (B, 4, H, W: radiance and coverage, as light_probe.probe_grid's
-    first channels) shows within SUN_CONE_DEG of ``axis`` (B, 3) above the sky's level (the median of its covered
-    cells): the least light a reflector, which returns at most what reaches it, needs there. cell_dirs (H*W, 3)
-    and solid_angle (H*W,) of the grid's cells, in the frame of ``axis``."""
-    rgb, covered = grid[:, :3].flatten(2), grid[:, 3].flatten(1) > 0.05
-    sky = torch.nanmedian(rgb.masked_fill(~covered.unsqueeze(1), float("nan")), -1).values.nan_to_num(0.0)
-    near = (axis @ cell_dirs.T) >= math.cos(math.radians(SUN_CONE_DEG))
-    return ((rgb - sky.unsqueeze(-1)).clamp_min(0) * (covered & near).unsqueeze(1) * solid_angle).sum(-1)
 
 
 def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:

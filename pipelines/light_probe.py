@@ -34,6 +34,10 @@ LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest ste
 BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
 # light_prior: how strongly the prior's components are held to their spread when fitted to the mirror cue
 PRIOR_STRENGTH = 0.1
+# sun_lobe "probe": the cue's radiance within this angle of the sun's axis is the sun's (metrics.dominant_direction's
+# cone), and the horizon's softness (in sin elevation) below which the sun's prior falls off
+SUN_CONE_DEG = 20.0
+HORIZON_SOFTNESS = 0.05
 
 
 def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
@@ -117,6 +121,18 @@ def compress_radiance(grid: torch.Tensor) -> torch.Tensor:
     return torch.cat([radiance[:, :3], grid[:, 3:4], radiance[:, 3:], grid[:, 7:8]], 1)
 
 
+def cue_sun_power(grid: torch.Tensor, axis: torch.Tensor, cell_dirs: torch.Tensor,
+                  solid_angle: torch.Tensor) -> torch.Tensor:
+    """(B, 3) the power the mirror cue of ``grid`` (B, C >= 4, H, W: its radiance and coverage first, as in
+    :func:`probe_grid`) shows within SUN_CONE_DEG of ``axis`` (B, 3)
+    above the sky's level (the median of its covered cells): the least light a reflector (which returns at most
+    what reaches it) needs there. cell_dirs (H*W, 3) and solid_angle (H*W,) of the grid's cells, same frame."""
+    rgb, covered = grid[:, :3].flatten(2), grid[:, 3].flatten(1) > 0.05
+    sky = torch.nanmedian(rgb.masked_fill(~covered.unsqueeze(1), float("nan")), -1).values.nan_to_num(0.0)
+    near = (axis @ cell_dirs.T) >= math.cos(math.radians(SUN_CONE_DEG))
+    return ((rgb - sky.unsqueeze(-1)).clamp_min(0) * (covered & near).unsqueeze(1) * solid_angle).sum(-1)
+
+
 def fibonacci_axes(k: int) -> torch.Tensor:
     """(k, 3) directions spread evenly over the sphere."""
     i = torch.arange(k, dtype=torch.float32) + 0.5
@@ -137,13 +153,15 @@ class ProbeLightHead(nn.Module):
 
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
-    starting at the mirror cue's brightest region) with its own sharpness and intensity. With a light prior
+    starting at the mirror cue's brightest region) with its own sharpness and intensity. With ``sun="probe"``
+    the sun stays above the horizon and its power is at least what the cue shows near its axis
+    (:func:`cue_sun_power`), so the image loss cannot switch it off. With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
                  max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
-                 prior_components: int = 0):
+                 prior_components: int = 0, sun: str = "learned"):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -151,6 +169,9 @@ class ProbeLightHead(nn.Module):
             raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
         self.kind, self.lobes, self.height, self.width, self.start = kind, lobes, height, width, start
         self.prior_components = prior_components
+        if sun not in ("learned", "probe"):
+            raise ValueError(f"the sun lobe is 'learned' or read from the 'probe', not {sun!r}")
+        self.sun_source = sun
         if prior_components and kind != "sg":
             raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
         self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
@@ -237,13 +258,22 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
         luminance = grid[:, :3].mean(1, keepdim=True)
         logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
+        cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
+        if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame
+            if probe_to_world is None:
+                raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world)")
+            logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
         p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
-        sun_axis = F.normalize(p @ self.cell_dirs.flatten(2)[0].T, dim=-1, eps=1e-6)
+        sun_axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
         pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
         sun = self.sun(torch.cat([pooled, code], -1))
+        sun_sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
         sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
+        if self.sun_source == "probe":  # at least the cue's power near the axis (an SG's power: a 2pi/l (1 - e^-2l))
+            power = cue_sun_power(grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
+            lam = sun_sharpness.detach()
+            sun_amplitude = torch.maximum(sun_amplitude, power * lam / (2 * math.pi * -torch.expm1(-2 * lam)))
         k = self.lobes - 1
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1)], 1),
-                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k),
-                                        sun[:, :1].exp().clamp(0.5, self.max_sharpness)], 1),
+                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness], 1),
                 "amplitude": torch.cat([amplitude, sun_amplitude.unsqueeze(1)], 1)}

@@ -51,7 +51,7 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped")}
+           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe")}
 
 
 @dataclass
@@ -86,6 +86,9 @@ class ModelConfig:
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
     # clipped at 1, as an 8-bit picture shows it (versions up to 7)
     input_range: str = "full"
+    # the probe head's SG sun: its power learned, or at least what the mirror cue shows near its axis, with the
+    # axis above the horizon (ProbeLightHead)
+    sun_lobe: str = "learned"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -241,7 +244,7 @@ class Encoder(nn.Module):
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             start=c.probe_start, prior_components=c.light_prior)
+                                             start=c.probe_start, prior_components=c.light_prior, sun=c.sun_lobe)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:

@@ -5,12 +5,15 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from dibrpp import Cameras, Renderer
+from dibrpp.lights import SGLight
 from dibrpp.mesh import laplacian_smoothness
+from dibrpp.renderer import RenderOutput
+from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
@@ -93,6 +96,20 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     return terms, weights
 
 
+def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, material, light: SGLight) -> RenderOutput:
+    """The render under SG ``light`` whose last lobe is the probe head's sun (``sun_lobe`` "probe"): the other lobes
+    shade the predicted surface as usual, the sun shades the same pixels with the surface's normals held (no
+    gradient): its direction was read off that surface, so bending the surface to fit its highlight would only
+    chase its own error. SG shading is linear in the lobes, so the image is the full light's."""
+    frags, g = renderer.gbuffer(meshes, cameras, material)
+    held = GBuffer(replace(g.point, normal=g.point.normal.detach(), view=g.point.view.detach()), g.batch, g.num_images)
+    lobes = lambda part: SGLight(light.axis[:, part], light.sharpness[:, part],  # noqa: E731
+                                 light.amplitude[:, part]).in_frame(light.world_to_light)
+    sky = renderer.shade(frags, g, lobes(slice(None, -1)))
+    sun = renderer.shade(frags, held, lobes(slice(-1, None)))
+    return RenderOutput(torch.cat([sky.rgb + sun.rgb, sky.image[..., 3:]], -1), frags, g)
+
+
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
                      iteration: int | None = None) -> tuple[torch.Tensor, dict, dict]:
     """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
@@ -110,7 +127,8 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     if detail < 1.0:
         shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
     light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
-    out = renderer(shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
+    render = render_sun_on_held_surface if config.sun_lobe == "probe" else Renderer.__call__
+    out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
     total = sum(weights[k] * v for k, v in terms.items())

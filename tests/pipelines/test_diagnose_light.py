@@ -1,6 +1,7 @@
-"""diagnose_light's sun read off the mirror cue, on hand-made cases with known answers."""
+"""The sun read off the mirror cue (the probe head's sun_lobe "probe", diagnose_light's row), on hand-made cases."""
 import math
 
+import pytest
 import torch
 
 from dibrpp import Cameras
@@ -8,8 +9,8 @@ from dibrpp.conventions import equirect_directions, equirect_solid_angles
 from dibrpp.lights import SGLight
 from dibrpp.mesh import icosphere
 from dibrpp.sg import sg_integral
-from pipelines.diagnose_light import cue_sun_power, with_cue_sun
-from pipelines.light_probe import mirror_directions, pixel_samples
+from pipelines.diagnose_light import with_cue_sun
+from pipelines.light_probe import ProbeLightHead, cue_sun_power, mirror_directions, pixel_samples
 
 
 def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
@@ -48,3 +49,27 @@ def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pi
     assert lit.axis.shape == (1, 2, 3)
     assert math.degrees(math.acos(float(lit.axis[0, 1] @ mirror[above]))) < 8.0
     assert (sg_integral(lit.sharpness, lit.amplitude)[0, 1] > 0).all()
+
+
+def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
+    """With sun="probe" a bright reflection below the horizon does not draw the sun, and the sun's power is at
+    least what the cue shows near it even when the head's own intensity says nothing; "learned" follows the head."""
+    torch.manual_seed(0)
+    h, w = 16, 32
+    grid = torch.cat([_probe_grid_with({(3, 8): 20.0, (12, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)  # + diffuse cue
+    heads = {s: ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun=s) for s in ("learned", "probe")}
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    for head in heads.values():
+        with torch.no_grad():
+            head.sun.bias[1:] = -30.0  # a head that learnt to switch its sun off
+    with torch.no_grad():
+        light = {s: head(grid, torch.zeros(1, 4), torch.eye(3)[None]) for s, head in heads.items()}
+    up = light["probe"]["axis"][0, -1]
+    assert up[2] > 0.5 and float(up @ dirs[3 * w + 8]) > 0.95
+    assert light["learned"]["axis"][0, -1, 2] < -0.5  # the learned sun follows the brightest cell, glint or not
+    power = sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -1]
+    cue = cue_sun_power(grid, up[None], dirs, equirect_solid_angles(h, w).expand(-1, w).reshape(-1))[0]
+    assert (power >= 0.999 * cue).all() and (cue > 0).all()
+    assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
+    with pytest.raises(ValueError, match="probe_to_world"):
+        heads["probe"](grid, torch.zeros(1, 4))

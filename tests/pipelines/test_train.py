@@ -341,3 +341,31 @@ def test_cross_view_renders_are_lit_by_the_views_light_the_predictions_own_or_bo
         for other in ("shared_light", "swap_light"):
             with pytest.raises(ConfigError, match="choose one"):
                 TrainConfig(cross_view_light=light, **{other: True}).validate()
+
+
+def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
+    """sun_lobe "probe": the image is the full light's, but the sun (the last lobe) sends no gradient to the shape,
+    while the other lobes do."""
+    from dibrpp import Cameras, Renderer
+    from dibrpp.brdf import Material
+    from dibrpp.lights import SGLight
+    from dibrpp.mesh import icosphere
+    from pipelines.objective import render_sun_on_held_surface
+
+    sphere = icosphere(2, radius=10.0)
+    verts = sphere.verts.clone().requires_grad_(True)
+    mesh = sphere.with_verts(verts)
+    cams = Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
+    material = Material(albedo=torch.tensor([[0.5, 0.3, 0.2]]), roughness=torch.tensor([0.2]),
+                        metallic=torch.tensor([1.0]))
+    axis = torch.nn.functional.normalize(torch.tensor([[[0.0, 0.0, 1.0], [0.3, 0.2, 1.0], [1.0, 0.5, 0.6]]]), dim=-1)
+    renderer = Renderer("sg")
+    for sky in (0.0, 1.0):
+        light = SGLight(axis, torch.tensor([[3.0, 3.0, 200.0]]), torch.tensor([[[sky] * 3, [sky] * 3, [500.0] * 3]]))
+        light = light.in_frame(torch.eye(3)[None])
+        held = render_sun_on_held_surface(renderer, mesh, cams, material, light)
+        torch.testing.assert_close(held.image, renderer(mesh, cams, material, light).image, atol=1e-4, rtol=1e-4)
+        verts.grad = None
+        held.rgb.sum().backward()
+        moved = verts.grad is not None and verts.grad.abs().sum() > 0
+        assert moved == (sky > 0), sky
