@@ -71,7 +71,7 @@ class TrainConfig:
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
     sun_lobe: str = _opt("learned", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
                          "at least what the mirror cue shows near its axis above the sky's level, with its axis above "
-                         "the horizon, and its highlight not bending the surface it was read through (probe)",
+                         "the horizon, and what the cue adds not bending the surface it was read through (probe)",
                          ("learned", "probe"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
@@ -251,7 +251,8 @@ VARIANTS: dict[str, Variant] = {
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third (the "
                            "default until 2026-11-25)", {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
     "probe-sun": Variant("the probe head's sun above the horizon with at least the power the mirror cue shows near "
-                         "its axis (the loss cannot switch it off), shading a surface held fixed", {"sun_lobe": "probe"},
+                         "its axis (the loss cannot switch it off), what the cue adds shading a held surface",
+                         {"sun_lobe": "probe"},
                          runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",

@@ -2,7 +2,7 @@
 
 On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of:
 
-- the run's light, and (probe head) its sun lobe alone, with the sun lobe's share of the light's power; for a
+- the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power; for a
   run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
 - the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
@@ -118,7 +118,8 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
                 world_to_probe = camera_to_probe() @ cams.world_to_camera[:, :3, :3]
                 found["the run's sun lobe alone"] = p["axis"][:, -1] @ world_to_probe  # rows: probe -> world
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
-                shares.append((power[:, -1] / power.sum(1))[sunny])
+                sun = model.light_head.sun_lobes
+                shares.append((power[:, -sun:].sum(1) / power.sum(1))[sunny])
                 light = head_on_gt_cue(model, images, cams, gt_meshes)
                 d = metrics.dominant_direction(pred.with_light(light).light(cams.world_to_camera).to_envmap(64, 128).image)[0]
                 found["the run's head fed the cue through the GT mesh"] = d

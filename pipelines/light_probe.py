@@ -155,7 +155,8 @@ class ProbeLightHead(nn.Module):
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region) with its own sharpness and intensity. With ``sun="probe"``
     the sun stays above the horizon and its power is at least what the cue shows near its axis
-    (:func:`cue_sun_power`), so the image loss cannot switch it off. With a light prior
+    (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries
+    what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -269,11 +270,18 @@ class ProbeLightHead(nn.Module):
         sun = self.sun(torch.cat([pooled, code], -1))
         sun_sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
         sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
+        suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis (an SG's power: a 2pi/l (1 - e^-2l))
             power = cue_sun_power(grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
             lam = sun_sharpness.detach()
-            sun_amplitude = torch.maximum(sun_amplitude, power * lam / (2 * math.pi * -torch.expm1(-2 * lam)))
-        k = self.lobes - 1
-        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1)], 1),
-                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness], 1),
-                "amplitude": torch.cat([amplitude, sun_amplitude.unsqueeze(1)], 1)}
+            floor = power * lam / (2 * math.pi * -torch.expm1(-2 * lam))
+            suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
+        k, n = self.lobes - 1, len(suns)
+        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
+                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
+                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1)}
+
+    @property
+    def sun_lobes(self) -> int:
+        """How many of the last SG lobes are the sun: its own, and (sun "probe") what the cue adds to it."""
+        return 2 if self.sun_source == "probe" else 1

@@ -97,10 +97,11 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
 
 
 def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, material, light: SGLight) -> RenderOutput:
-    """The render under SG ``light`` whose last lobe is the probe head's sun (``sun_lobe`` "probe"): the other lobes
-    shade the predicted surface as usual, the sun shades the same pixels with the surface's normals held (no
-    gradient): its direction was read off that surface, so bending the surface to fit its highlight would only
-    chase its own error. SG shading is linear in the lobes, so the image is the full light's."""
+    """The render under SG ``light`` whose last lobe is the sun the probe head adds from the mirror cue (``sun_lobe``
+    "probe"): the other lobes (the head's own sun among them) shade the predicted surface as usual, that lobe
+    shades the same pixels with the surface's normals held (no gradient): it was read off that surface, so
+    bending the surface to fit its highlight would only chase the surface's own error. SG shading is linear in
+    the lobes, so the image is the full light's."""
     frags, g = renderer.gbuffer(meshes, cameras, material)
     held = GBuffer(replace(g.point, normal=g.point.normal.detach(), view=g.point.view.detach()), g.batch, g.num_images)
     lobes = lambda part: SGLight(light.axis[:, part], light.sharpness[:, part],  # noqa: E731

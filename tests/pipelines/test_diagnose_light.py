@@ -53,7 +53,8 @@ def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pi
 
 def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
     """With sun="probe" a bright reflection below the horizon does not draw the sun, and the sun's power is at
-    least what the cue shows near it even when the head's own intensity says nothing; "learned" follows the head."""
+    least what the cue shows near it even when the head's own intensity says nothing (a second lobe on its axis
+    carries what the cue adds); "learned" follows the head."""
     torch.manual_seed(0)
     h, w = 16, 32
     grid = torch.cat([_probe_grid_with({(3, 8): 20.0, (12, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)  # + diffuse cue
@@ -67,7 +68,8 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
     up = light["probe"]["axis"][0, -1]
     assert up[2] > 0.5 and float(up @ dirs[3 * w + 8]) > 0.95
     assert light["learned"]["axis"][0, -1, 2] < -0.5  # the learned sun follows the brightest cell, glint or not
-    power = sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -1]
+    assert light["probe"]["axis"].shape[1] == 9 and heads["probe"].sun_lobes == 2  # the head's sun and the cue's
+    power = sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -2:].sum(0)
     cue = cue_sun_power(grid, up[None], dirs, equirect_solid_angles(h, w).expand(-1, w).reshape(-1))[0]
     assert (power >= 0.999 * cue).all() and (cue > 0).all()
     assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
