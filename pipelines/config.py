@@ -126,6 +126,9 @@ class TrainConfig:
         if self.light_prior and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_prior shapes the probe head's SG sky; use it with --shading sg or sh-sg and the "
                               "probe light head")
+        if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
+            raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
+                              "sg or sh-sg and the probe light head")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self

@@ -13,7 +13,7 @@ On the test views with a dominant light, the direction error (median, share with
   horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
   would give, with the rough-metal probe's si-RMSE of both lights.
 
-Each row is a limit the light head works within; docs/experiments.md (entries 12 and 13) reads them.
+Each row is a limit the light head works within; docs/experiments.md (entries 12, 13 and 16) reads them.
 """
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ import torch
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.cli_args import Parser, positive_int
-from dibrpp.formatting import markdown_table
 from dibrpp.conventions import equirect_directions, equirect_solid_angles
+from dibrpp.formatting import markdown_table
 from dibrpp.io import DataError
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
@@ -37,15 +37,14 @@ from .model import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
 
+SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
+
 
 def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     """(B, 3) dominant direction of the mirror cue of ``meshes`` seen by ``cameras`` in the world frame."""
     normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
     mean, cover = scatter_to_grid(mirror_directions(normals, to_camera), seen, weight, 32, 64)
     return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
-
-
-SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
 
 
 def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
@@ -132,7 +131,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
     if shares:
-        rows.append(["(the sun lobe's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
+        rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
     if probes:
         rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
             f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", ""])
