@@ -17,7 +17,6 @@ Each row is a limit the light head works within; docs/experiments.md (entries 12
 """
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -40,26 +39,37 @@ from .runs import load_run, run_folder
 SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
 
 
+def mirror_cue(meshes, cameras, radiance, alpha, above_horizon: bool = False) -> torch.Tensor:
+    """(B, 4, 32, 64) the mirror cue of ``meshes`` seen by ``cameras`` on a world-frame grid: radiance and coverage
+    (``above_horizon``: only what the surface reflects from above the horizon)."""
+    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
+    mirror = mirror_directions(normals, to_camera)
+    if above_horizon:
+        weight = weight * (mirror[..., 2] > 0)
+    return torch.cat(scatter_to_grid(mirror, seen, weight, 32, 64), 1)
+
+
+def cue_peak(cue: torch.Tensor) -> torch.Tensor:
+    """(B, 3) dominant direction of a :func:`mirror_cue` grid, over the cells the surface covers."""
+    return metrics.dominant_direction((cue[:, :3] * (cue[:, 3:] > 0.05)).permute(0, 2, 3, 1))[0]
+
+
 def cue_direction(meshes, cameras, radiance, alpha) -> torch.Tensor:
     """(B, 3) dominant direction of the mirror cue of ``meshes`` seen by ``cameras`` in the world frame."""
-    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
-    mean, cover = scatter_to_grid(mirror_directions(normals, to_camera), seen, weight, 32, 64)
-    return metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+    return cue_peak(mirror_cue(meshes, cameras, radiance, alpha))
 
 
 def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
     """``light`` (world-frame SG) plus a sun where the mirror cue of ``meshes`` is brightest above the horizon,
     with the power the cue shows there above the sky's level."""
-    normals, to_camera, seen, weight = pixel_samples(meshes, cameras, radiance, alpha)
-    mirror = mirror_directions(normals, to_camera)
-    mean, cover = scatter_to_grid(mirror, seen, weight * (mirror[..., 2] > 0), 32, 64)
-    axis = metrics.dominant_direction((mean * (cover > 0.05)).permute(0, 2, 3, 1))[0]
+    cue = mirror_cue(meshes, cameras, radiance, alpha, above_horizon=True)
+    axis = cue_peak(cue)
     cells = equirect_directions(32, 64).reshape(-1, 3)
-    power = cue_sun_power(torch.cat([mean, cover], 1), axis, cells, equirect_solid_angles(32, 64).expand(-1, 64).reshape(-1))
+    power = cue_sun_power(cue, axis, cells, equirect_solid_angles(32, 64).expand(-1, 64).reshape(-1))
     lam = torch.full((len(axis), 1), SUN_SHARPNESS)
     frame = light.world_to_light
     return SGLight(torch.cat([light.axis, (frame @ axis.unsqueeze(-1)).mT], 1), torch.cat([light.sharpness, lam], 1),
-                   torch.cat([light.amplitude, (power * lam / (2 * math.pi)).unsqueeze(1)], 1)).in_frame(frame)
+                   torch.cat([light.amplitude, (power / sg_integral(lam)).unsqueeze(1)], 1)).in_frame(frame)
 
 
 def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:

@@ -27,6 +27,7 @@ from dibrpp.camera import Cameras
 from dibrpp.mesh import Meshes
 from dibrpp.raster import RasterSettings, rasterize
 from dibrpp.renderer import build_gbuffer
+from dibrpp.sg import sg_integral
 
 # camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
@@ -271,10 +272,9 @@ class ProbeLightHead(nn.Module):
         sun_sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
         sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
         suns = [sun_amplitude]
-        if self.sun_source == "probe":  # at least the cue's power near the axis (an SG's power: a 2pi/l (1 - e^-2l))
+        if self.sun_source == "probe":  # at least the cue's power near the axis
             power = cue_sun_power(grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
-            lam = sun_sharpness.detach()
-            floor = power * lam / (2 * math.pi * -torch.expm1(-2 * lam))
+            floor = power / sg_integral(sun_sharpness.detach())
             suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
         k, n = self.lobes - 1, len(suns)
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
