@@ -1,6 +1,8 @@
 """Where a run's light loses the sun: ``python -m pipelines.diagnose_light --run runs/metallic/sg-seed0``.
 
-On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of:
+On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of the
+sources below, over all those views and on each env map apart (its light's elevation: the test split holds few
+sunny maps, and how high the sun stands decides where a mirror-like car shows it):
 
 - the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power; for a
   run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
@@ -9,6 +11,8 @@ On the test views with a dominant light, the direction error (median, share with
   the predicted surface and through the GT mesh, from the input clipped at 1 (as an 8-bit picture shows it)
   and at its full dynamic range;
 - (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one;
+- the predicted normals' error on the pixels both surfaces cover, and on those where the GT surface mirrors
+  the sun (its mirror direction within 10 degrees of it): how wrong the normals are where the sun shows;
 - (SG light) the run's light with a sun added where the cue through its own surface is brightest above the
   horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
   would give, with the rough-metal probe's si-RMSE of both lights.
@@ -85,19 +89,41 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 
-def diagnose(run: Path, stride: int = 3) -> list[list]:
+SUN_PIXEL_DEG = 10.0  # a pixel "mirrors the sun" where the GT surface's mirror direction is this close to it
+
+
+def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
+    """(B, 2) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
+    pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3) (NaN if none)."""
+    radiance, alpha = rgba[..., :3], rgba[..., 3]
+    pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
+    gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
+    gt_n, gt_v, gt_w = (torch.cat([g[i] for g in gt]) for i in (0, 1, 3))
+    angle = torch.rad2deg(torch.arccos((pred_n * gt_n).sum(-1).clamp(-1, 1)))
+    both = (pred_w > 0.5) & (gt_w > 0.5)
+    at_sun = both & (metrics.angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
+    nan = angle.new_tensor(float("nan"))
+    return torch.stack([torch.stack([a[m].median() if m.any() else nan for m in (b, s)])
+                        for a, b, s in zip(angle, both, at_sun)])
+
+
+def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[list]]:
+    """(rows over all sunny test views, the by-map table's header, its rows: each source's median error and share
+    within 25 degrees on each sunny env map, whose GT sun elevation the header gives)."""
     loaded = load_run(run)
     model, config = loaded.model, loaded.config
     probe = model.config.light_head == "probe"
     ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
-    errors, shares, probes = {}, [], {}
+    errors, shares, probes, maps, elevations, normals = {}, [], {}, [], [], []
     with torch.no_grad():
         for start in range(0, len(views), 16):
             b = collate([ds[i] for i in views[start:start + 16]])
             rgba, cams, env = b["image"][:, 0], b["cameras"], b["envmap"]
             d_gt, frac = metrics.dominant_direction(env)
             sunny = frac >= metrics.SUN_FRACTION
+            maps.append(torch.as_tensor(b["envmap_index"])[sunny])
+            elevations.append(torch.rad2deg(torch.asin(d_gt[sunny, 2].clamp(-1, 1))))
             images = encoder_input(rgba)
             pred = model(images, cams)
             gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
@@ -114,6 +140,7 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
             if model.config.input_range == "full":  # what it places from an 8-bit picture (a PNG given to predict)
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
+            normals.append(normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
             for surface in ("predicted", "GT"):
                 for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
                     if surface == "predicted":
@@ -134,18 +161,32 @@ def diagnose(run: Path, stride: int = 3) -> list[list]:
                 found["the run's head fed the cue through the GT mesh"] = d
             for k, d in found.items():
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
-    rows = []
+    rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
+    normal_rows = ["normals' error (°), all pixels both surfaces cover",
+                   f"normals' error (°), the pixels whose GT mirror direction is within {SUN_PIXEL_DEG:.0f}° of the sun"]
+    by_map = [[k] for k in errors] + [[k] for k in normal_rows]
+    header = ["sunny views of each test map: median (≤ 25°)"]
+    for m in maps.unique().tolist():
+        on = maps == m
+        header.append(f"map {m}: light {float(elevations[on].median()):.0f}° high, {int(on.sum())} views")
+        for row, v in zip(by_map, errors.values()):
+            v = torch.cat(v)[on]
+            row.append(f"{v.median():.1f}° ({100 * (v <= 25).float().mean():.0f} %)")
+        for row, v in zip(by_map[len(errors):], normals[on].T):
+            row.append(f"{v.nanmedian():.1f}° ({int((~v.isnan()).sum())} views)")
     for k, v in errors.items():
         v = torch.cat(v)
         if not len(v):
             raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
+    for name, v in zip(normal_rows, normals.T):
+        rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views)", "", "", ""])
     if shares:
         rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
     if probes:
         rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
             f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", ""])
-    return rows
+    return rows, header, by_map
 
 
 def main(argv=None) -> int:
@@ -155,10 +196,12 @@ def main(argv=None) -> int:
                     help="every N-th test view of each object, as make eval (default: 3)")
     args = ap.parse_args(argv)
     try:
-        rows = diagnose(run_folder(Path(args.run)), args.view_stride)
+        rows, by_map_header, by_map = diagnose(run_folder(Path(args.run)), args.view_stride)
     except DataError as e:
         ap.error(str(e))
     print(markdown_table(["sunny test views", "direction median (°)", "≤ 25°", "≤ 45°"], rows))
+    print()
+    print(markdown_table(by_map_header, by_map))
     return 0
 
 

@@ -7,7 +7,7 @@ import torch
 from dibrpp import Cameras
 from dibrpp.conventions import equirect_directions, equirect_solid_angles
 from dibrpp.lights import SGLight
-from dibrpp.mesh import icosphere
+from dibrpp.mesh import Meshes, icosphere
 from dibrpp.sg import sg_integral
 from pipelines.diagnose_light import with_cue_sun
 from pipelines.light_probe import ProbeLightHead, cue_sun_power, mirror_directions, pixel_samples
@@ -75,3 +75,19 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
     assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
     with pytest.raises(ValueError, match="probe_to_world"):
         heads["probe"](grid, torch.zeros(1, 4))
+
+
+def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors_the_sun():
+    """The same sphere as prediction and GT: no error anywhere; the sun straight back at the camera is mirrored by
+    the pixels facing it, a sun straight behind the sphere by none (NaN); a sphere squashed in depth is wrong
+    where it is seen."""
+    from pipelines.diagnose_light import normal_errors
+    sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
+    rgba = torch.ones(1, 24, 24, 4)
+    _, to_camera, _, weight = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])
+    toward = torch.nn.functional.normalize((to_camera[0] * weight[0, :, None]).sum(0), dim=0)[None]
+    err = normal_errors(sphere, [sphere], cams, rgba, toward)
+    assert err.shape == (1, 2) and float(err[0, 0]) < 0.5 and float(err[0, 1]) < 0.5
+    assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1])
+    squashed = Meshes(sphere.verts * torch.tensor([1.0, 1.0, 0.5]), sphere.faces, sphere.uvs, sphere.face_uvs)
+    assert float(normal_errors(squashed, [sphere], cams, rgba, toward)[0, 0]) > 5.0
