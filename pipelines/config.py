@@ -78,9 +78,7 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), its own (one world light for both views), or both "
                                  "(a render under each)", ("both", "view", "own"))
-    swap_light: bool = _opt(False, "renders of each prediction in the same object's other sample (another env map), "
-                            "lit by that sample's light: instead of eq. 8's cross-view renders with the view's light, "
-                            "added to them with the own light")
+    swap_light: bool = _opt(False, "cross-view renders of the same object under its other env map, with its light")
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
     light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
                                   ("", "map", "probe"))
@@ -119,9 +117,9 @@ class TrainConfig:
             raise ConfigError(f"image_size must be a multiple of 16, got {self.image_size}")
         if self.shared_light and self.swap_light:
             raise ConfigError("shared_light and swap_light pair the batch differently; choose one")
-        if self.cross_view_light != "view" and self.shared_light:
+        if self.cross_view_light != "view" and (self.shared_light or self.swap_light):
             raise ConfigError(f"cross_view_light {self.cross_view_light!r} lights cross-view renders with the "
-                              "prediction's own light; shared_light with another's: choose one")
+                              "prediction's own light; shared_light and swap_light with another's: choose one")
         if self.shading == "sh" and self.light_head == "probe":
             raise ConfigError("light_head 'probe' predicts SG lobes or env maps, not SH; use --light-head global "
                               "(or auto) with --shading sh")
@@ -230,9 +228,6 @@ VARIANTS: dict[str, Variant] = {
     "swap-light": Variant("cross-view renders of the same object under its other env map, lit by its light",
                           {"swap_light": True, "cross_view_light": "view"},
                           runs=(("glossy", 0), ("glossy", 1), ("metallic", 0))),
-    "swap-light-added": Variant("the default's renders plus each prediction in its object's other sample (another env "
-                                "map) under that sample's light: an albedo holding one map's reflections is wrong there",
-                                {"swap_light": True}, runs=(("metallic", 0), ("glossy", 0))),
     "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
                                    {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0,
                                     "cross_view_light": "view"}),

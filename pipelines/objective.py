@@ -45,7 +45,6 @@ def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) ->
         src, dst = src[keep], dst[keep]
     lit_by = dst.clone()
     cross = src != dst
-    base_src = src
     partner_view = 2 * partner[dst // 2] + dst % 2  # the same view of the render's partner item
     if config.cross_view_light == "own":
         # ... lit by the prediction's own light, read from its own view: one world light has to explain the
@@ -59,16 +58,11 @@ def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) ->
         # tint: what differs between them has to go to their materials.
         lit_by[cross] = partner_view[cross]
     if config.swap_light:
-        # ... in the partner's view, against its image and with its light: the same object under another env
-        # map. Only the light differs between the two images, so whatever the albedo copied from one map's
-        # reflections is wrong under the other and has to come from the light. With eq. 8's cross-view light
-        # these renders replace eq. 8's cross-view renders; with the own light they are added to them.
-        swapped = partner_view[cross]
-        if config.cross_view_light == "view":
-            dst[cross] = swapped
-            lit_by = dst.clone()
-        else:
-            src, dst, lit_by = torch.cat([src, base_src[cross]]), torch.cat([dst, swapped]), torch.cat([lit_by, swapped])
+        # ... in the partner's view instead, against its image and with its light: the same object under
+        # another env map. Only the light differs between the two images, so whatever the albedo copied from
+        # one map's reflections is wrong under the other and has to come from the light
+        dst[cross] = partner_view[cross]
+        lit_by = dst.clone()
     return RenderPlan(src, dst, lit_by)
 
 

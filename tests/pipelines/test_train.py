@@ -338,29 +338,23 @@ def test_cross_view_renders_are_lit_by_the_views_light_the_predictions_own_or_bo
     assert torch.equal(both.src[n:], view.src[cross]) and torch.equal(both.dst[n:], view.dst[cross])
     assert torch.equal(both.lit_by[n:], view.src[cross])
     for light in ("own", "both"):
-        with pytest.raises(ConfigError, match="choose one"):
-            TrainConfig(cross_view_light=light, shared_light=True).validate()
+        for other in ("shared_light", "swap_light"):
+            with pytest.raises(ConfigError, match="choose one"):
+                TrainConfig(cross_view_light=light, **{other: True}).validate()
 
 
-def test_swap_renders_replace_eq8s_cross_view_renders_or_are_added_to_the_own_lights():
-    """swap_light: each prediction rendered in the same view of its partner item (the object under another env
-    map), lit by the partner's light; with eq. 8's light instead of the cross-view renders, with "both" after them."""
+def test_swap_renders_replace_eq8s_cross_view_renders():
+    """swap_light: each prediction's cross-view render goes to the same view of its partner item (the object under
+    another env map), lit by the partner's light; the renders in the input view stay."""
     from pipelines.objective import render_plan
     partner = torch.tensor([1, 0])
     view = render_plan(2, partner, TrainConfig(cross_view_light="view"))
-    both = render_plan(2, partner, TrainConfig(cross_view_light="both"))
     cross = view.src != view.dst
     partner_view = 2 * partner[view.dst // 2] + view.dst % 2
-    replaced = render_plan(2, partner, TrainConfig(cross_view_light="view", swap_light=True))
-    assert torch.equal(replaced.src, view.src) and torch.equal(replaced.lit_by, replaced.dst)
-    assert torch.equal(replaced.dst[cross], partner_view[cross]) and torch.equal(replaced.dst[~cross], view.dst[~cross])
-    added = render_plan(2, partner, TrainConfig(swap_light=True))
-    n = len(both.src)
-    for got, want in zip((added.src, added.dst, added.lit_by), (both.src, both.dst, both.lit_by)):
-        assert torch.equal(got[:n], want)
-    assert torch.equal(added.src[n:], view.src[cross])
-    assert torch.equal(added.dst[n:], partner_view[cross]) and torch.equal(added.lit_by[n:], partner_view[cross])
-    assert torch.equal(added.dst[n:] // 2, partner[added.src[n:] // 2])  # in the partner item, the other env map
+    swapped = render_plan(2, partner, TrainConfig(cross_view_light="view", swap_light=True))
+    assert torch.equal(swapped.src, view.src) and torch.equal(swapped.lit_by, swapped.dst)
+    assert torch.equal(swapped.dst[cross], partner_view[cross]) and torch.equal(swapped.dst[~cross], view.dst[~cross])
+    assert torch.equal(swapped.dst[cross] // 2, partner[swapped.src[cross] // 2])  # the other env map's item
 
 
 def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
