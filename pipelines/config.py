@@ -60,7 +60,7 @@ class TrainConfig:
                             ("softplus", "log"))
     light_head: str = _opt("auto", "light read from the input through the predicted geometry (probe; the object as a "
                            "light probe) or regressed from the global code (global, the paper's); auto: probe for "
-                           "SG light (sg, sh-sg), global for mc and sh", ("auto", "probe", "global"))
+                           "SG light (sg, sh-sg) and mc, global for sh", ("auto", "probe", "global"))
     probe_start: str = _opt("luminance", "the probe head's first light: the mirror cue's luminance or its colour",
                             ("luminance", "colour"))
     probe_samples: str = _opt("pixels", "where the probe head reads the input: the pixels the predicted surface "
@@ -159,11 +159,12 @@ class TrainConfig:
         return asdict(self)
 
     def resolved_light_head(self) -> str:
-        """The light head the model gets. 'auto': the probe head where it was measured to place the light better
-        (SG lobes: sg, sh-sg), the paper's global head elsewhere (MC's env map: not measured yet; SH baseline)."""
+        """The light head the model gets. 'auto': the probe head where it was measured to light the probes and place
+        the light better (SG lobes: sg, sh-sg; MC's env map since 2026-11-25), the paper's global head for the SH
+        baseline. (An MC run written before then says 'auto' for the global head: runs.load_config reads it so.)"""
         if self.light_head != "auto":
             return self.light_head
-        return "probe" if self.shading in SG_LIGHT else "global"
+        return "global" if self.shading == "sh" else "probe"
 
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
@@ -231,9 +232,11 @@ VARIANTS: dict[str, Variant] = {
     "swap-light-log-lr10": Variant("swap-light with exponential light scales at 10x the learning rate",
                                    {"swap_light": True, "light_scale": "log", "light_lr_scale": 10.0,
                                     "cross_view_light": "view"}),
-    "global-light": Variant("the paper's light head: the light regressed from the global code (no light probe)",
+    "global-light": Variant("the paper's light head: the light regressed from the global code (no light probe; MC's "
+                            "default until 2026-11-25)",
                             {"light_head": "global"}, runs=(("glossy", 0), ("metallic", 0))),
-    "probe-light": Variant("the light read from the input through the predicted geometry, whatever the shading",
+    "probe-light": Variant("the light read from the input through the predicted geometry, named explicitly (what "
+                           "'auto' gives SG light and, since 2026-11-25, MC)",
                            {"light_head": "probe"}, runs=()),
     "probe-light-colour": Variant("the probe head starting from the mirror cue's colour instead of its luminance",
                                   {"light_head": "probe", "probe_start": "colour"}, runs=(("glossy", 0), ("metallic", 0))),

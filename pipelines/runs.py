@@ -15,7 +15,7 @@ import hashlib
 import json
 import pickle
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -67,9 +67,20 @@ def load_config(run: Path) -> TrainConfig:
     path = Path(run) / CONFIG
     try:
         saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
-        return TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved} if isinstance(saved, dict) else saved)
+        config = TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved} if isinstance(saved, dict) else saved)
     except ConfigError as e:
         raise DataError(f"{path}: {e}") from e
+    return _light_head_as_trained(config, Path(run))
+
+
+def _light_head_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
+    """Until 2026-11-25 light_head 'auto' gave MC the global head, since then the probe head: an MC run saying
+    'auto' gets the head its checkpoint's model was built with, so that it loads, is labelled and resumes as what
+    it was."""
+    if config.shading != "mc" or config.light_head != "auto" or not (run / CHECKPOINT).exists():
+        return config
+    trained = read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("light_head")
+    return replace(config, light_head=trained) if trained in ("global", "probe") and trained != config.resolved_light_head() else config
 
 
 def save_config(run: Path, config: TrainConfig) -> None:

@@ -387,3 +387,26 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
         with pytest.raises(ConfigError, match="sun_lobe 'probe'"):
             TrainConfig(sun_lobe="probe", **wrong).validate()
     TrainConfig(sun_lobe="probe", shading="sh-sg").validate()
+
+
+def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes_as_it_was(tiny_glossy, tmp_path):
+    """light_head 'auto' gives MC the probe head since 2026-11-25; an MC run whose config says 'auto' but whose
+    checkpoint holds the global head (written before) is read as light_head 'global'."""
+    from dibrpp.io import DataError
+    from pipelines.runs import load_config, load_run
+    assert TrainConfig(shading="mc").resolved_light_head() == "probe"
+    assert TrainConfig(shading="sh").resolved_light_head() == "global"
+    old = tmp_path / "old"
+    train(config(tiny_glossy, old, shading="mc", light_head="global", iterations=2), progress=False)
+    written = json.loads((old / "config.json").read_text())
+    (old / "config.json").write_text(json.dumps({**written, "light_head": "auto"}))  # as the run wrote it then
+    run = load_run(old)
+    assert run.config.light_head == "global" and run.model.config.light_head == "global"
+    assert run.config.label() == "light_head=global"
+    with pytest.raises(DataError, match="light_head: 'global' -> 'auto'"):
+        train(config(tiny_glossy, old, shading="mc", iterations=4), resume=True, progress=False)
+    train(config(tiny_glossy, old, shading="mc", light_head="global", iterations=4), resume=True, progress=False)
+    new = tmp_path / "new"
+    train(config(tiny_glossy, new, shading="mc", iterations=2), progress=False)
+    assert load_config(new).light_head == "auto" and load_config(new).label() == ""
+    assert load_run(new).model.config.light_head == "probe"
