@@ -80,7 +80,9 @@ def _light_head_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
     if config.shading != "mc" or config.light_head != "auto" or not (run / CHECKPOINT).exists():
         return config
     trained = read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("light_head")
-    return replace(config, light_head=trained) if trained in ("global", "probe") and trained != config.resolved_light_head() else config
+    if trained in ("global", "probe") and trained != config.resolved_light_head():
+        return replace(config, light_head=trained)
+    return config
 
 
 def save_config(run: Path, config: TrainConfig) -> None:
