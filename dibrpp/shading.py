@@ -33,6 +33,13 @@ class GBuffer:
     num_images: int
 
 
+@torch.compiler.disable
+def _largest(counts: torch.Tensor) -> int:
+    """The padded block's width, a Python int: outside torch.compile, whose graph has to break for a shape read
+    from the data anyway (this way without a warning in every compiled MC run)."""
+    return int(counts.max())
+
+
 def per_image(fn, values: torch.Tensor, batch: torch.Tensor, num_images: int, shared: bool = False) -> torch.Tensor:
     """Apply ``fn`` (which takes a (B, M, ...) batch of per-image values) to packed (N, ...) values.
 
@@ -46,7 +53,7 @@ def per_image(fn, values: torch.Tensor, batch: torch.Tensor, num_images: int, sh
     counts = torch.bincount(batch, minlength=num_images)
     start = torch.cumsum(counts, 0) - counts
     slot = torch.arange(batch.shape[0], device=batch.device) - start[batch]
-    width = int(counts.max()) if batch.numel() else 0
+    width = _largest(counts) if batch.numel() else 0
     padded = values.new_zeros((num_images, max(width, 1)) + values.shape[1:])
     padded = padded.index_put((batch, slot), values)
     out = fn(padded)
