@@ -99,7 +99,7 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
     pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
     gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
     gt_n, gt_v, gt_w = (torch.cat([g[i] for g in gt]) for i in (0, 1, 3))
-    angle = torch.rad2deg(torch.arccos((pred_n * gt_n).sum(-1).clamp(-1, 1)))
+    angle = metrics.angle_deg(pred_n, gt_n)
     both = (pred_w > 0.5) & (gt_w > 0.5)
     at_sun = both & (metrics.angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
     nan = angle.new_tensor(float("nan"))
@@ -162,6 +162,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             for k, d in found.items():
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
+    errors = {k: torch.cat(v) for k, v in errors.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",
                    f"normals' error (°), the pixels whose GT mirror direction is within {SUN_PIXEL_DEG:.0f}° of the sun"]
     by_map = [[k] for k in errors] + [[k] for k in normal_rows]
@@ -170,12 +171,11 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
         on = maps == m
         header.append(f"map {m}: light {float(elevations[on].median()):.0f}° high, {int(on.sum())} views")
         for row, v in zip(by_map, errors.values()):
-            v = torch.cat(v)[on]
+            v = v[on]
             row.append(f"{v.median():.1f}° ({100 * (v <= 25).float().mean():.0f} %)")
         for row, v in zip(by_map[len(errors):], normals[on].T):
             row.append(f"{v.nanmedian():.1f}° ({int((~v.isnan()).sum())} views)")
     for k, v in errors.items():
-        v = torch.cat(v)
         if not len(v):
             raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
