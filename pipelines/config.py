@@ -85,9 +85,15 @@ class TrainConfig:
     w_albedo_consistency: float = _opt(0.0, "L1 between the albedos predicted from an object's two views",
                                        minimum=0.0)
     w_albedo_darker: float = _opt(0.0, "albedo pulled down to the darker of an object's two views", minimum=0.0)
+    w_sun_consensus: float = _opt(0.0, "weight of a loss pulling the mirror directions of the pixels that show the sun "
+                                  "in each pair of views to their consensus over both views (the pair's normals)",
+                                  minimum=0.0)
     light_lr_scale: float = _opt(1.0, "the light head's learning rate as a multiple of --lr", minimum=0.0)
     flat_albedo_iterations: int = _opt(0, "curriculum: renders use the mean albedo for this many iterations",
                                        minimum=0)
+    roughness_anneal: float = _opt(0.0, "curriculum: the renders' roughness at least this at the start, lowered linearly "
+                                   "to none by two thirds of the run (blurred reflections first: a smoother loss in "
+                                   "the normals)", minimum=0.0)
     visibility: str = _opt("dibr", "silhouette gradient: soft silhouette, or antialiased edges (Sec. F.1)",
                            ("dibr", "edge_aa"))
     threads: int = _opt(0, "torch threads per process (0: torch's default)", minimum=0)
@@ -260,6 +266,12 @@ VARIANTS: dict[str, Variant] = {
                          "its axis (the loss cannot switch it off), what the cue adds shading a held surface",
                          {"sun_lobe": "probe"},
                          runs=(("metallic", 0), ("glossy", 0))),
+    "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
+                                "the run: blurred reflections before sharp ones, for the normals",
+                                {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
+    "sun-consensus": Variant("each view's sun pixels mirror to where both views of its pair place the sun, weight 0.1 "
+                             "(the pair's agreement taught to the normals)",
+                             {"w_sun_consensus": 0.1}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

@@ -89,24 +89,6 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 
-SUN_PIXEL_DEG = 10.0  # a pixel "mirrors the sun" where the GT surface's mirror direction is this close to it
-
-
-def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
-    """(B, 2) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
-    pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3) (NaN if none)."""
-    radiance, alpha = rgba[..., :3], rgba[..., 3]
-    pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
-    gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
-    gt_n, gt_v, gt_w = (torch.cat([g[i] for g in gt]) for i in (0, 1, 3))
-    angle = metrics.angle_deg(pred_n, gt_n)
-    both = (pred_w > 0.5) & (gt_w > 0.5)
-    at_sun = both & (metrics.angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
-    nan = angle.new_tensor(float("nan"))
-    return torch.stack([torch.stack([a[m].median() if m.any() else nan for m in (b, s)])
-                        for a, b, s in zip(angle, both, at_sun)])
-
-
 def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[list]]:
     """(rows over all sunny test views, the by-map table's header, its rows: each source's median error and share
     within 25 degrees on each sunny env map, whose GT sun elevation the header gives)."""
@@ -140,7 +122,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             if model.config.input_range == "full":  # what it places from an 8-bit picture (a PNG given to predict)
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
-            normals.append(normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
+            normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
             for surface in ("predicted", "GT"):
                 for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
                     if surface == "predicted":
@@ -164,7 +146,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
     errors = {k: torch.cat(v) for k, v in errors.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",
-                   f"normals' error (°), the pixels whose GT mirror direction is within {SUN_PIXEL_DEG:.0f}° of the sun"]
+                   f"normals' error (°), the pixels whose GT mirror direction is within {metrics.SUN_PIXEL_DEG:.0f}° of the sun"]
     by_map = [[k] for k in errors] + [[k] for k in normal_rows]
     header = ["sunny views of each test map: median (≤ 25°)"]
     for m in maps.unique().tolist():

@@ -3,7 +3,7 @@
 
 Per test object, the model's own shape (the template sphere scaled per axis plus bounded, mirror-symmetric
 per-vertex offsets; ``Encoder._shape``) is fitted directly to the object's views, no encoder, with the
-training's Laplacian weight and one of three signals:
+training's Laplacian weight and one of these signals:
 
 - ``normals``: the rendered normals against the GT mesh's, plus the silhouettes: what the template can represent;
 - ``silhouettes``: the soft-silhouette loss alone: what the outlines hold;
@@ -11,13 +11,19 @@ training's Laplacian weight and one of three signals:
   GT material and the GT env map's 32-lobe SG fit while an albedo texture is fitted alongside: what shading holds
   when the light is known;
 - ``image-from-normals``: the same, starting from the ``normals`` fit (the shape held while the albedo settles,
-  for the first third of the steps): whether the image losses keep normals the template can carry.
+  for the first third of the steps): whether the image losses keep normals the template can carry;
+- ``image-annealed``: ``image`` with the renders' roughness at least 0.7 at the start, lowered to the object's
+  own by two thirds of the steps (the ``roughness-anneal`` curriculum): whether blurred reflections first lead
+  descent from the sphere to better normals.
 
 The image rows also give the image L1 the fit reached and the GT scene's (GT mesh, texture and material under
 the same light) against the same views: where the fit's is lower, the image loss prefers a wrong shape to
 the true one. The predicted normals' error is then measured as ``make eval`` measures it (``metrics.normal_error_deg``: per
 view, the median angle over the pixels both surfaces cover), median over views and objects. A trained run's
-error sits between these rows; docs/experiments.md (entry 14) reads them.
+error sits between these rows; docs/experiments.md (entry 14) reads them. With ``--sunny`` each object is fitted
+under a map with a sun, and every row also gives the normals' error where the GT surface mirrors the sun (as
+``diagnose_light`` measures a run's: ``metrics.normal_errors``), the pixels the light's direction depends on
+(entry 18).
 """
 from __future__ import annotations
 
@@ -39,10 +45,11 @@ from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
 from . import metrics
 from .config import TrainConfig
-from .losses import foreground_l1, gradient_loss, hdr_srgb, soft_iou_loss
+from .losses import foreground_l1, gradient_loss, hdr_srgb, roughness_floor, soft_iou_loss
 from .model import Encoder, ModelConfig
 
-SIGNALS = ("normals", "silhouettes", "image", "image-from-normals")
+SIGNALS = ("normals", "silhouettes", "image", "image-from-normals", "image-annealed")
+ANNEAL_ROUGHNESS = 0.7  # ``image-annealed``: the roughness the fit starts from, lowered to the object's own
 
 
 def object_views(ds: MultiViewDataset, obj: int, env: int) -> tuple[Cameras, torch.Tensor]:
@@ -82,7 +89,10 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
         smooth = weights.w_laplacian * laplacian_smoothness(verts, laplacian) / model.config.template_radius ** 2
         if image:
             albedo = torch.sigmoid(texture).expand(n, -1, -1, -1)
-            out = renderer(meshes, cameras, Material(albedo=albedo, wrap_u=True, **material), light)
+            shading = dict(material)
+            if signal == "image-annealed":  # a blurred reflection first: a smoother loss in the normals
+                shading["roughness"] = max(shading["roughness"], roughness_floor(ANNEAL_ROUGHNESS, steps, step))
+            out = renderer(meshes, cameras, Material(albedo=albedo, wrap_u=True, **shading), light)
             rgb, target = hdr_srgb(out.rgb), hdr_srgb(images[..., :3])
             reached = foreground_l1(rgb, target, images[..., 3])
             loss = weights.w_image * reached + weights.w_gradient * gradient_loss(rgb, target * images[..., 3:])
@@ -99,25 +109,36 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
         if start is not None and image and step < steps // 3:
             raw.grad = None  # the albedo settles on the given shape before the shape moves
         opt.step()
-    return raw.detach(), float(reached) if image else None
+    return raw.detach(), float(reached.detach()) if image else None
 
 
-def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[list]:
+def test_samples(ds: MultiViewDataset, objects: int, sunny: bool) -> list[tuple[int, int]]:
+    """(object, env map) of the first ``objects`` test objects, each under its first env map, or with ``sunny``
+    under its first map with a sun (objects without one left out)."""
+    chosen = {}
+    for obj, env in ds.samples:
+        if obj not in chosen and (not sunny or float(metrics.dominant_direction(ds.envmap(env)[None])[1]) >= metrics.SUN_FRACTION):
+            chosen[obj] = env
+    return list(chosen.items())[:objects]
+
+
+def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: bool = False) -> list[list]:
     ds = MultiViewDataset(dataset, split="test", views_per_item=1)
     model = Encoder(ModelConfig(image_size=ds.resolution))
     weights = TrainConfig()
-    samples = list(dict.fromkeys(obj for obj, _ in ds.samples))[:objects]
+    samples = test_samples(ds, objects, sunny)
     if not samples:
-        raise DataError(f"{dataset}: no test objects to fit")
+        raise DataError(f"{dataset}: no test objects to fit" + (" under a sunny map" if sunny else ""))
     errors = {s: [] for s in signals}
     within = {s: [] for s in signals}
+    at_sun = {s: [] for s in signals}
     reached = {s: [] for s in (*signals, "gt")}
     renderer = Renderer("sg")
-    for k, obj in enumerate(samples):
-        env = next(e for o, e in ds.samples if o == obj)
+    for k, (obj, env) in enumerate(samples):
         cameras, images = object_views(ds, obj, env)
         with torch.no_grad():
             gt = renderer.render_normals(ds.mesh(obj).expand(len(images)), cameras)
+        sun, sun_share = metrics.dominant_direction(ds.envmap(env)[None])
         material = ds.material_params(obj)
         light = None
         if any(s.startswith("image") for s in signals):
@@ -137,17 +158,24 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS) -> list[li
             if l1 is not None:
                 reached[signal].append(l1)
             with torch.no_grad():
-                pred = renderer.render_normals(model.template().with_verts(verts.expand(len(images), -1, -1)), cameras)
+                meshes = model.template().with_verts(verts.expand(len(images), -1, -1))
+                pred = renderer.render_normals(meshes, cameras)
+                if float(sun_share) >= metrics.SUN_FRACTION:  # the normals where the GT surface mirrors the sun
+                    sun_deg = metrics.normal_errors(meshes, [ds.mesh(obj)] * len(images), cameras, images,
+                                                    sun.expand(len(images), 3))[:, 1]
+                    at_sun[signal].append(sun_deg.nanmedian())
             deg, share = metrics.normal_error_deg(pred.rgb[..., :3], pred.alpha, gt.rgb[..., :3], gt.alpha)
             errors[signal].append(deg.nanmedian())
             within[signal].append(share.nanmean())
             print(f"object {obj} ({k + 1}/{len(samples)}), {signal}: normals {float(deg.nanmedian()):.1f} deg "
                   f"({time.time() - start:.0f} s)", file=sys.stderr, flush=True)
     mean_l1 = {k: f"{sum(v) / len(v):.3f}" if v else "" for k, v in reached.items()}
-    rows = [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}", mean_l1[s]]
-            for s in signals]
+    sun_col = {s: f"{float(torch.stack(v).nanmedian()):.1f} ({len(v)})" if v else "" for s, v in at_sun.items()}
+    rows = [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}",
+             sun_col[s], mean_l1[s]] for s in signals]
     if reached["gt"]:
-        rows.append(["(the GT mesh, texture and material under the same light)", "0", "100%", mean_l1["gt"]])
+        rows.append(["(the GT mesh, texture and material under the same light)", "0", "100%", "0" if at_sun[signals[0]] else "",
+                     mean_l1["gt"]])
     return rows
 
 
@@ -157,6 +185,9 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", type=positive_int, default=6, metavar="N", help="test objects to fit (default: 6)")
     ap.add_argument("--steps", type=positive_int, default=300, metavar="N", help="Adam steps per fit (default: 300)")
     ap.add_argument("--signals", default=",".join(SIGNALS), help=f"comma-separated subset of {', '.join(SIGNALS)}")
+    ap.add_argument("--sunny", action="store_true",
+                    help="fit each object under its first env map with a sun (objects without one left out), so that "
+                         "every row also gives the normals where the GT surface mirrors the sun")
     ap.add_argument("--threads", type=positive_int, default=None, metavar="N", help="torch CPU threads")
     args = ap.parse_args(argv)
     signals = tuple(dict.fromkeys(s.strip() for s in args.signals.split(",") if s.strip()))
@@ -167,10 +198,11 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     try:
-        rows = diagnose(args.dataset, args.objects, args.steps, signals)
+        rows = diagnose(args.dataset, args.objects, args.steps, signals, sunny=args.sunny)
     except DataError as e:
         ap.error(str(e))
-    print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°", "image L1"], rows))
+    print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°",
+                        "where the GT surface mirrors the sun (°; sunny samples)", "image L1"], rows))
     return 0
 
 

@@ -12,8 +12,9 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from dibrpp.conventions import orbit_world_to_camera
+from dibrpp.conventions import LUMINANCE_WEIGHTS, orbit_world_to_camera
 
+from .light_probe import mirror_directions, pixel_samples
 from .metrics import ProbeScene, si_rmse
 
 
@@ -71,11 +72,54 @@ def darker_view_albedo_loss(texture: torch.Tensor, facing: torch.Tensor | None) 
     return excess.sum() / (both.sum() * 2 * 3).clamp_min(1)
 
 
+SUN_PIXEL_SHARE = 0.5  # a pixel shows the sun where its radiance is at least this share of the view's brightest
+SUN_VIEW_CONTRAST = 8.0  # a view shows the sun where its brightest pixel is this many times its median one
+
+
+def sun_pixels(radiance: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(B, N) weights of the pixels that show a compact light's reflection: luminance above SUN_PIXEL_SHARE of the
+    view's brightest covered pixel, by how much, in views whose brightest pixel stands SUN_VIEW_CONTRAST times above
+    their median (a sun or a lamp, not a bright sky); radiance (B, N, 3) linear, weight (B, N) coverage."""
+    lum = (radiance * radiance.new_tensor(LUMINANCE_WEIGHTS)).sum(-1)
+    covered = weight > 0.5
+    brightest = torch.where(covered, lum, torch.zeros_like(lum)).amax(1, keepdim=True)
+    median = torch.stack([v[m].median() if m.any() else v.new_tensor(float("inf")) for v, m in zip(lum, covered)])
+    shows_sun = brightest[:, 0] >= SUN_VIEW_CONTRAST * median
+    share = torch.relu(lum / brightest.clamp_min(1e-6) - SUN_PIXEL_SHARE)
+    return weight * share * shows_sun[:, None]
+
+
+def sun_consensus_loss(meshes, cameras, images: torch.Tensor) -> torch.Tensor:
+    """How far the mirror directions of the pixels that show the sun (:func:`sun_pixels`) in each pair of views
+    (2i, 2i + 1: one object under one map) are from their consensus over both views, 1 - cos, weighted.
+    A view's own sun pixels place the sun where its normals' errors put it; two views' errors are largely
+    independent, so their consensus is closer (the metallic default: 32° in one view, 23° over two, 11° over
+    eight; docs/experiments.md, entry 18), and pulling each view's normals towards it (the consensus held)
+    carries what the pair shows into what one view predicts. meshes and cameras: the 2B views' predicted
+    surfaces; images (2B, S, S, 4) linear."""
+    normals, to_camera, radiance, weight = pixel_samples(meshes, cameras, images[..., :3], images[..., 3])
+    w = sun_pixels(radiance, weight).detach()
+    mirror = mirror_directions(normals, to_camera)  # world frame
+    pair_sum = (mirror * w[..., None]).sum(1).detach().view(-1, 2, 3).sum(1)  # (B, 3)
+    consensus = F.normalize(pair_sum, dim=-1, eps=1e-12).repeat_interleave(2, dim=0)  # (2B, 3)
+    return ((1 - (mirror * consensus[:, None]).sum(-1)) * w).sum() / w.sum().clamp_min(1e-12)  # 0 with no sun
+
+
 def albedo_detail(flat_iterations: int, iteration: int | None) -> float:
     """How much of the texture's detail the renders use at ``iteration`` under the flat-albedo curriculum of
     ``flat_iterations`` (None: the trained model, full detail)."""
     n = flat_iterations
     return 1.0 if n <= 0 or iteration is None else min(1.0, max(0.0, (iteration - n) / n))
+
+
+def roughness_floor(start: float, iterations: int, iteration: int | None) -> float:
+    """The renders' least roughness at ``iteration`` under the roughness curriculum: ``start``, lowered linearly to 0
+    by two thirds of the run's ``iterations`` (None: the trained model, no floor). A blurred reflection changes
+    slowly with the normals, so the shape first fits the broad shading and meets the sharp reflection near its
+    basin (``pipelines.diagnose_shape``'s ``image-annealed`` fit)."""
+    if start <= 0 or iteration is None:
+        return 0.0
+    return start * max(0.0, 1 - iteration / max(1, 2 * iterations // 3))
 
 
 def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:

@@ -17,6 +17,8 @@ import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
 
+from .light_probe import mirror_directions, pixel_samples
+
 
 def image_l1(pred_rgb: torch.Tensor, gt_rgb: torch.Tensor, gt_mask: torch.Tensor) -> torch.Tensor:
     """(B,) mean |pred - gt| over the GT foreground; rgb (B, H, W, 3), mask (B, H, W) in [0, 1]."""
@@ -215,3 +217,21 @@ def light_metrics(pred_light, gt_env, scene: "ProbeScene") -> dict:
     d_pred, _ = dominant_direction(pred_table)
     out["direction_deg"] = torch.where(frac >= SUN_FRACTION, angle_deg(d_pred, d_gt), torch.full_like(frac, float("nan")))
     return out
+
+
+SUN_PIXEL_DEG = 10.0  # a pixel "mirrors the sun" where the GT surface's mirror direction is this close to it
+
+
+def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
+    """(B, 2) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
+    pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3) (NaN if none)."""
+    radiance, alpha = rgba[..., :3], rgba[..., 3]
+    pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
+    gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
+    gt_n, gt_v, gt_w = (torch.cat([g[i] for g in gt]) for i in (0, 1, 3))
+    angle = angle_deg(pred_n, gt_n)
+    both = (pred_w > 0.5) & (gt_w > 0.5)
+    at_sun = both & (angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
+    nan = angle.new_tensor(float("nan"))
+    return torch.stack([torch.stack([a[m].median() if m.any() else nan for m in (b, s)])
+                        for a, b, s in zip(angle, both, at_sun)])

@@ -17,7 +17,8 @@ from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+                     hdr_srgb, roughness_floor, soft_iou_loss, sun_consensus_loss, supervised_light_loss,
+                     with_albedo_detail)
 from .model_input import encoder_input
 
 
@@ -87,6 +88,10 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
         weights["light_supervision"] = 1.0
+    if config.w_sun_consensus:
+        images = batch["image"].reshape(-1, *batch["image"].shape[2:])  # the 2B input views, 2i + j
+        terms["sun_consensus"] = sun_consensus_loss(pred.meshes(), views, images)
+        weights["sun_consensus"] = config.w_sun_consensus
     if config.w_albedo_consistency:
         terms["albedo_consistency"] = albedo_consistency_loss(pred.texture)
         weights["albedo_consistency"] = config.w_albedo_consistency
@@ -124,6 +129,9 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     shape_pred = pred.select(plan.src)
     if config.oracle_roughness:
         shape_pred.roughness = batch["roughness"][plan.src // 2].to(shape_pred.roughness)
+    floor = roughness_floor(config.roughness_anneal, config.iterations, iteration)
+    if floor > 0:
+        shape_pred.roughness = shape_pred.roughness.clamp_min(floor)
     detail = albedo_detail(config.flat_albedo_iterations, iteration)
     if detail < 1.0:
         shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)

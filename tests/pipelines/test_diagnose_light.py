@@ -81,7 +81,7 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     """The same sphere as prediction and GT: no error anywhere; the sun straight back at the camera is mirrored by
     the pixels facing it, a sun straight behind the sphere by none (NaN); a sphere squashed in depth is wrong
     where it is seen."""
-    from pipelines.diagnose_light import normal_errors
+    from pipelines.metrics import normal_errors
     sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
     rgba = torch.ones(1, 24, 24, 4)
     _, to_camera, _, weight = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])

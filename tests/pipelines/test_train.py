@@ -11,7 +11,7 @@ from datagen.reader import MultiViewDataset
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
-from pipelines.losses import albedo_detail, darker_view_albedo_loss, with_albedo_detail
+from pipelines.losses import albedo_detail, darker_view_albedo_loss, roughness_floor, with_albedo_detail
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
@@ -117,6 +117,20 @@ def test_flat_albedo_curriculum_renders_mean_albedos_then_fades_the_detail_in(ti
     renders = [multiview_losses(model, make_renderer(cfg, 0, training=True), data.batch(0, 2, 0), cfg, lap, it)[2]["render"]
                for it in (0, None, 25)]
     assert not torch.allclose(renders[0], renders[1]) and torch.allclose(renders[1], renders[2])
+
+
+def test_roughness_curriculum_blurs_the_renders_first_then_leaves_the_predicted_roughness(tiny_glossy):
+    assert [roughness_floor(0.6, 30, i) for i in (0, 10, 20, 25, None)] == [0.6, pytest.approx(0.3), 0.0, 0.0, 0.0]
+    assert roughness_floor(0.0, 30, 0) == 0.0  # off by default
+    cfg = config(tiny_glossy, "unused", lobes=4, roughness_anneal=0.7, iterations=30)
+    torch.manual_seed(0)
+    model = make_model(cfg)
+    data = TrainingData(cfg.dataset, cfg.image_size)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    model.material_head.bias.data[0] = -20.0  # a mirror: the roughness at its floor
+    renders = [multiview_losses(model, make_renderer(cfg, 0, training=True), data.batch(0, 2, 0), cfg, lap, it)[2]["render"]
+               for it in (0, None, 25)]
+    assert not torch.allclose(renders[0], renders[1]) and torch.equal(renders[1], renders[2])
 
 
 @pytest.mark.parametrize("kind", ["map", "probe"])
