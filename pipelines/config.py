@@ -85,9 +85,6 @@ class TrainConfig:
     w_albedo_consistency: float = _opt(0.0, "L1 between the albedos predicted from an object's two views",
                                        minimum=0.0)
     w_albedo_darker: float = _opt(0.0, "albedo pulled down to the darker of an object's two views", minimum=0.0)
-    w_sun_consensus: float = _opt(0.0, "weight of a loss pulling the mirror directions of the pixels that show the sun "
-                                  "in each pair of views to their consensus over both views (the pair's normals)",
-                                  minimum=0.0)
     light_lr_scale: float = _opt(1.0, "the light head's learning rate as a multiple of --lr", minimum=0.0)
     flat_albedo_iterations: int = _opt(0, "curriculum: renders use the mean albedo for this many iterations",
                                        minimum=0)
@@ -269,9 +266,6 @@ VARIANTS: dict[str, Variant] = {
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
-    "sun-consensus": Variant("each view's sun pixels mirror to where both views of its pair place the sun, weight 0.1 "
-                             "(the pair's agreement taught to the normals)",
-                             {"w_sun_consensus": 0.1}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

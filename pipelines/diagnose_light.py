@@ -15,9 +15,13 @@ sunny maps, and how high the sun stands decides where a mirror-like car shows it
   the sun (its mirror direction within 10 degrees of it): how wrong the normals are where the sun shows;
 - (SG light) the run's light with a sun added where the cue through its own surface is brightest above the
   horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
-  would give, with the rough-metal probe's si-RMSE of both lights.
+  would give, with the rough-metal probe's si-RMSE of both lights;
+- the pixels that show the sun (the brightest, in views where they stand far above the rest), their mirror
+  directions through the predicted surface and through the GT mesh averaged over one view, over it and the
+  next view of the same object under the same map, and over every view of it: how much of a view's error
+  is its own (it averages out over views) and how much the surface's (it does not).
 
-Each row is a limit the light head works within; docs/experiments.md (entries 12, 13 and 16) reads them.
+Each row is a limit the light head works within; docs/experiments.md (entries 12, 13, 16 and 18) reads them.
 """
 from __future__ import annotations
 
@@ -28,7 +32,7 @@ import torch
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.cli_args import Parser, positive_int
-from dibrpp.conventions import equirect_directions, equirect_solid_angles
+from dibrpp.conventions import LUMINANCE_WEIGHTS, equirect_directions, equirect_solid_angles
 from dibrpp.formatting import markdown_table
 from dibrpp.io import DataError
 from dibrpp.lights import EnvMap, SGLight
@@ -89,6 +93,44 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 
+SUN_PIXEL_SHARE = 0.5  # a pixel shows the sun where its radiance is at least this share of the view's brightest
+SUN_VIEW_CONTRAST = 8.0  # a view shows the sun where its brightest pixel is this many times its median one
+
+
+def sun_pixels(radiance: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(B, N) weights of the pixels that show a compact light's reflection: luminance above SUN_PIXEL_SHARE of the
+    view's brightest covered pixel, by how much, in views whose brightest pixel stands SUN_VIEW_CONTRAST times above
+    their median (a sun or a lamp, not a bright sky); radiance (B, N, 3) linear, weight (B, N) coverage."""
+    lum = (radiance * radiance.new_tensor(LUMINANCE_WEIGHTS)).sum(-1)
+    covered = weight > 0.5
+    brightest = torch.where(covered, lum, torch.zeros_like(lum)).amax(1, keepdim=True)
+    median = torch.stack([v[m].median() if m.any() else v.new_tensor(float("inf")) for v, m in zip(lum, covered)])
+    shows_sun = brightest[:, 0] >= SUN_VIEW_CONTRAST * median
+    share = torch.relu(lum / brightest.clamp_min(1e-6) - SUN_PIXEL_SHARE)
+    return weight * share * shows_sun[:, None]
+
+
+def sun_pixel_sums(meshes, cameras, rgba: torch.Tensor) -> torch.Tensor:
+    """(B, 3) per view, the world-frame mirror directions of the pixels that show the sun (:func:`sun_pixels`)
+    through ``meshes``, summed by their weights: normalised, the sun's direction as that view places it; summed
+    over views, as they place it together."""
+    normals, to_camera, radiance, weight = pixel_samples(meshes, cameras, rgba[..., :3], rgba[..., 3])
+    return (mirror_directions(normals, to_camera) * sun_pixels(radiance, weight)[..., None]).sum(1)
+
+
+def consensus_directions(sums: torch.Tensor, sample: torch.Tensor) -> dict:
+    """{'one view', 'two views', 'all views'}: (N, 3) per view, the sun's direction from its own sun pixels' sums
+    (N, 3), from them and the next view of its ``sample`` (N,) (cyclic), and from every view of its sample. A
+    view that shows no sun has no direction (zero: a miss)."""
+    nxt = torch.arange(len(sample))
+    for key in sample.unique():
+        idx = (sample == key).nonzero()[:, 0]
+        nxt[idx] = idx.roll(-1)
+    total = torch.zeros(int(sample.max()) + 1, 3).index_add_(0, sample, sums)[sample]
+    unit = lambda v: torch.nn.functional.normalize(v, dim=-1, eps=1e-12)  # noqa: E731
+    return {"one view": unit(sums), "two views": unit(sums + sums[nxt]), "all views": unit(total)}
+
+
 def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[list]]:
     """(rows over all sunny test views, the by-map table's header, its rows: each source's median error and share
     within 25 degrees on each sunny env map, whose GT sun elevation the header gives)."""
@@ -98,6 +140,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
     errors, shares, probes, maps, elevations, normals = {}, [], {}, [], [], []
+    sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
     with torch.no_grad():
         for start in range(0, len(views), 16):
             b = collate([ds[i] for i in views[start:start + 16]])
@@ -123,6 +166,11 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
             normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
+            sun_sums["predicted"].append(sun_pixel_sums(pred.meshes(), cams, rgba))
+            sun_sums["GT"].append(torch.cat([sun_pixel_sums(m, cams[[k]], rgba[k:k + 1]) for k, m in enumerate(gt_meshes)]))
+            samples.append(torch.as_tensor(b["object"]) * 10_000 + torch.as_tensor(b["envmap_index"]))
+            suns.append(d_gt)
+            sunny_views.append(sunny)
             for surface in ("predicted", "GT"):
                 for name, radiance in (("clipped", clipped), ("full range", rgba[..., :3])):
                     if surface == "predicted":
@@ -143,6 +191,11 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 found["the run's head fed the cue through the GT mesh"] = d
             for k, d in found.items():
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
+    _, sample = torch.cat(samples).unique(return_inverse=True)
+    d_gt, sunny = torch.cat(suns), torch.cat(sunny_views)
+    for surface, sums in sun_sums.items():  # what the sun-consensus loss reads, from one view and from several
+        for views, d in consensus_directions(torch.cat(sums), sample).items():
+            errors[f"sun pixels, {surface} surface, {views} of the sample"] = [metrics.angle_deg(d, d_gt)[sunny]]
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
     errors = {k: torch.cat(v) for k, v in errors.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",

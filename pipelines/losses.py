@@ -12,9 +12,8 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from dibrpp.conventions import LUMINANCE_WEIGHTS, orbit_world_to_camera
+from dibrpp.conventions import orbit_world_to_camera
 
-from .light_probe import mirror_directions, pixel_samples
 from .metrics import ProbeScene, si_rmse
 
 
@@ -70,39 +69,6 @@ def darker_view_albedo_loss(texture: torch.Tensor, facing: torch.Tensor | None) 
     darker = tex.min(1, keepdim=True).values.detach()
     excess = torch.where(tex > darker, tex - darker, 0.0) * both  # no gradient to the darker view itself
     return excess.sum() / (both.sum() * 2 * 3).clamp_min(1)
-
-
-SUN_PIXEL_SHARE = 0.5  # a pixel shows the sun where its radiance is at least this share of the view's brightest
-SUN_VIEW_CONTRAST = 8.0  # a view shows the sun where its brightest pixel is this many times its median one
-
-
-def sun_pixels(radiance: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """(B, N) weights of the pixels that show a compact light's reflection: luminance above SUN_PIXEL_SHARE of the
-    view's brightest covered pixel, by how much, in views whose brightest pixel stands SUN_VIEW_CONTRAST times above
-    their median (a sun or a lamp, not a bright sky); radiance (B, N, 3) linear, weight (B, N) coverage."""
-    lum = (radiance * radiance.new_tensor(LUMINANCE_WEIGHTS)).sum(-1)
-    covered = weight > 0.5
-    brightest = torch.where(covered, lum, torch.zeros_like(lum)).amax(1, keepdim=True)
-    median = torch.stack([v[m].median() if m.any() else v.new_tensor(float("inf")) for v, m in zip(lum, covered)])
-    shows_sun = brightest[:, 0] >= SUN_VIEW_CONTRAST * median
-    share = torch.relu(lum / brightest.clamp_min(1e-6) - SUN_PIXEL_SHARE)
-    return weight * share * shows_sun[:, None]
-
-
-def sun_consensus_loss(meshes, cameras, images: torch.Tensor) -> torch.Tensor:
-    """How far the mirror directions of the pixels that show the sun (:func:`sun_pixels`) in each pair of views
-    (2i, 2i + 1: one object under one map) are from their consensus over both views, 1 - cos, weighted.
-    A view's own sun pixels place the sun where its normals' errors put it; two views' errors are largely
-    independent, so their consensus is closer (the metallic default: 32° in one view, 23° over two, 11° over
-    eight; docs/experiments.md, entry 18), and pulling each view's normals towards it (the consensus held)
-    carries what the pair shows into what one view predicts. meshes and cameras: the 2B views' predicted
-    surfaces; images (2B, S, S, 4) linear."""
-    normals, to_camera, radiance, weight = pixel_samples(meshes, cameras, images[..., :3], images[..., 3])
-    w = sun_pixels(radiance, weight).detach()
-    mirror = mirror_directions(normals, to_camera)  # world frame
-    pair_sum = (mirror * w[..., None]).sum(1).detach().view(-1, 2, 3).sum(1)  # (B, 3)
-    consensus = F.normalize(pair_sum, dim=-1, eps=1e-12).repeat_interleave(2, dim=0)  # (2B, 3)
-    return ((1 - (mirror * consensus[:, None]).sum(-1)) * w).sum() / w.sum().clamp_min(1e-12)  # 0 with no sun
 
 
 def albedo_detail(flat_iterations: int, iteration: int | None) -> float:

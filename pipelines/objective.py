@@ -17,7 +17,7 @@ from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, roughness_floor, soft_iou_loss, sun_consensus_loss, supervised_light_loss,
+                     hdr_srgb, roughness_floor, soft_iou_loss, supervised_light_loss,
                      with_albedo_detail)
 from .model_input import encoder_input
 
@@ -88,10 +88,6 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
         weights["light_supervision"] = 1.0
-    if config.w_sun_consensus:
-        images = batch["image"].reshape(-1, *batch["image"].shape[2:])  # the 2B input views, 2i + j
-        terms["sun_consensus"] = sun_consensus_loss(pred.meshes(), views, images)
-        weights["sun_consensus"] = config.w_sun_consensus
     if config.w_albedo_consistency:
         terms["albedo_consistency"] = albedo_consistency_loss(pred.texture)
         weights["albedo_consistency"] = config.w_albedo_consistency

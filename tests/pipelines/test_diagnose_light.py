@@ -91,3 +91,41 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1])
     squashed = Meshes(sphere.verts * torch.tensor([1.0, 1.0, 0.5]), sphere.faces, sphere.uvs, sphere.face_uvs)
     assert float(normal_errors(squashed, [sphere], cams, rgba, toward)[0, 0]) > 5.0
+
+
+def test_consensus_directions_add_each_views_sun_pixels_to_the_next_view_and_to_every_view_of_its_sample():
+    from pipelines.diagnose_light import consensus_directions
+    x, y, z = torch.eye(3)
+    sums = torch.stack([2 * x, 2 * y, torch.zeros(3), 3 * z, z])  # samples 0, 0, 0, 1, 1; view 2 shows no sun
+    d = consensus_directions(sums, torch.tensor([0, 0, 0, 1, 1]))
+    s = 2 ** -0.5
+    assert torch.allclose(d["one view"], torch.stack([x, y, torch.zeros(3), z, z]))
+    assert torch.allclose(d["two views"], torch.stack([s * (x + y), y, x, z, z]))  # view 2's next is view 0
+    assert torch.allclose(d["all views"], torch.stack([s * (x + y)] * 3 + [z, z]))
+
+
+def _two_views_of_a_sun_on_a_sphere(sun: torch.Tensor, res: int = 32):
+    sphere = icosphere(3, radius=10.0)
+    a, b = Cameras.orbit(40.0, 25.0, 30.0, 40.0, res), Cameras.orbit(40.0, 35.0, 100.0, 40.0, res)
+    cams = Cameras(torch.cat([a.world_to_camera, b.world_to_camera]), torch.cat([a.fov, b.fov]), res)
+    images = torch.ones(2, res, res, 4)
+    normals, to_camera, _, weight = pixel_samples(sphere.expand(2), cams, images[..., :3], images[..., 3])
+    cos = (mirror_directions(normals, to_camera) * sun).sum(-1)
+    bright = (cos > torch.cos(torch.deg2rad(torch.tensor(6.0)))) & (weight > 0.5)
+    images[..., :3] = torch.where(bright.view(2, res, res, 1), 100.0, 1.0)
+    return sphere, cams, images, bright
+
+
+def test_sun_pixels_are_the_reflection_in_views_that_show_one_and_none_under_a_bright_sky():
+    from pipelines.diagnose_light import sun_pixels
+    sun = torch.nn.functional.normalize(torch.tensor([0.3, 0.2, 1.0]), dim=0)
+    sphere, cams, images, bright = _two_views_of_a_sun_on_a_sphere(sun)
+    _, _, radiance, weight = pixel_samples(sphere.expand(2), cams, images[..., :3], images[..., 3])
+    w = sun_pixels(radiance, weight)
+    assert bright.sum(1).min() > 0 and torch.equal(w > 0, bright)
+    assert float(sun_pixels(torch.ones_like(radiance), weight).sum()) == 0  # a uniform sky has no sun
+    from pipelines.diagnose_light import consensus_directions, sun_pixel_sums
+    from pipelines.metrics import angle_deg
+    found = consensus_directions(sun_pixel_sums(sphere, cams, images), torch.tensor([0, 0]))
+    for d in found.values():  # through the true surface every view, and both together, mirror the sun
+        assert float(angle_deg(d, sun.expand_as(d)).max()) < 3.0
