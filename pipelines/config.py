@@ -88,9 +88,9 @@ class TrainConfig:
     light_lr_scale: float = _opt(1.0, "the light head's learning rate as a multiple of --lr", minimum=0.0)
     flat_albedo_iterations: int = _opt(0, "curriculum: renders use the mean albedo for this many iterations",
                                        minimum=0)
-    roughness_anneal: float = _opt(0.0, "curriculum: the renders' roughness at least this at the start, lowered linearly "
-                                   "to none by two thirds of the run (blurred reflections first: a smoother loss in "
-                                   "the normals)", minimum=0.0)
+    roughness_anneal: float = _opt(0.0, "curriculum: the renders' roughness at least this at the start, lowered "
+                                   "linearly to none by two thirds of the run (blurred reflections first: a smoother "
+                                   "loss in the normals)", minimum=0.0)
     visibility: str = _opt("dibr", "silhouette gradient: soft silhouette, or antialiased edges (Sec. F.1)",
                            ("dibr", "edge_aa"))
     threads: int = _opt(0, "torch threads per process (0: torch's default)", minimum=0)

@@ -167,7 +167,8 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
             normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
             sun_sums["predicted"].append(sun_pixel_sums(pred.meshes(), cams, rgba))
-            sun_sums["GT"].append(torch.cat([sun_pixel_sums(m, cams[[k]], rgba[k:k + 1]) for k, m in enumerate(gt_meshes)]))
+            sun_sums["GT"].append(torch.cat([sun_pixel_sums(m, cams[[k]], rgba[k:k + 1])
+                                             for k, m in enumerate(gt_meshes)]))
             samples.append(torch.as_tensor(b["object"]) * 10_000 + torch.as_tensor(b["envmap_index"]))
             suns.append(d_gt)
             sunny_views.append(sunny)
@@ -193,7 +194,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
     _, sample = torch.cat(samples).unique(return_inverse=True)
     d_gt, sunny = torch.cat(suns), torch.cat(sunny_views)
-    for surface, sums in sun_sums.items():  # what the sun-consensus loss reads, from one view and from several
+    for surface, sums in sun_sums.items():  # the sun as one view places it, and as several do together
         for views, d in consensus_directions(torch.cat(sums), sample).items():
             errors[f"sun pixels, {surface} surface, {views} of the sample"] = [metrics.angle_deg(d, d_gt)[sunny]]
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)

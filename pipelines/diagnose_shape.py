@@ -112,12 +112,17 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
     return raw.detach(), float(reached.detach()) if image else None
 
 
-def test_samples(ds: MultiViewDataset, objects: int, sunny: bool) -> list[tuple[int, int]]:
+def has_sun(ds: MultiViewDataset, env: int) -> bool:
+    """Whether env map ``env`` has a dominant light (``metrics.dominant_direction``'s share of its power)."""
+    return float(metrics.dominant_direction(ds.envmap(env)[None])[1]) >= metrics.SUN_FRACTION
+
+
+def fitted_samples(ds: MultiViewDataset, objects: int, sunny: bool) -> list[tuple[int, int]]:
     """(object, env map) of the first ``objects`` test objects, each under its first env map, or with ``sunny``
     under its first map with a sun (objects without one left out)."""
     chosen = {}
     for obj, env in ds.samples:
-        if obj not in chosen and (not sunny or float(metrics.dominant_direction(ds.envmap(env)[None])[1]) >= metrics.SUN_FRACTION):
+        if obj not in chosen and (not sunny or has_sun(ds, env)):
             chosen[obj] = env
     return list(chosen.items())[:objects]
 
@@ -126,7 +131,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
     ds = MultiViewDataset(dataset, split="test", views_per_item=1)
     model = Encoder(ModelConfig(image_size=ds.resolution))
     weights = TrainConfig()
-    samples = test_samples(ds, objects, sunny)
+    samples = fitted_samples(ds, objects, sunny)
     if not samples:
         raise DataError(f"{dataset}: no test objects to fit" + (" under a sunny map" if sunny else ""))
     errors = {s: [] for s in signals}
@@ -138,7 +143,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
         cameras, images = object_views(ds, obj, env)
         with torch.no_grad():
             gt = renderer.render_normals(ds.mesh(obj).expand(len(images)), cameras)
-        sun, sun_share = metrics.dominant_direction(ds.envmap(env)[None])
+        sun = metrics.dominant_direction(ds.envmap(env)[None])[0] if has_sun(ds, env) else None
         material = ds.material_params(obj)
         light = None
         if any(s.startswith("image") for s in signals):
@@ -160,7 +165,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
             with torch.no_grad():
                 meshes = model.template().with_verts(verts.expand(len(images), -1, -1))
                 pred = renderer.render_normals(meshes, cameras)
-                if float(sun_share) >= metrics.SUN_FRACTION:  # the normals where the GT surface mirrors the sun
+                if sun is not None:  # the normals where the GT surface mirrors the sun
                     sun_deg = metrics.normal_errors(meshes, [ds.mesh(obj)] * len(images), cameras, images,
                                                     sun.expand(len(images), 3))[:, 1]
                     at_sun[signal].append(sun_deg.nanmedian())
@@ -174,8 +179,8 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
     rows = [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}",
              sun_col[s], mean_l1[s]] for s in signals]
     if reached["gt"]:
-        rows.append(["(the GT mesh, texture and material under the same light)", "0", "100%", "0" if at_sun[signals[0]] else "",
-                     mean_l1["gt"]])
+        gt_at_sun = "0" if at_sun[signals[0]] else ""
+        rows.append(["(the GT mesh, texture and material under the same light)", "0", "100%", gt_at_sun, mean_l1["gt"]])
     return rows
 
 
@@ -202,7 +207,7 @@ def main(argv=None) -> int:
     except DataError as e:
         ap.error(str(e))
     print(markdown_table(["the template fitted to", "normals: median error (°)", "pixels within 10°",
-                        "where the GT surface mirrors the sun (°; sunny samples)", "image L1"], rows))
+                         "where the GT surface mirrors the sun (°; sunny samples)", "image L1"], rows))
     return 0
 
 

@@ -17,8 +17,7 @@ from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, roughness_floor, soft_iou_loss, supervised_light_loss,
-                     with_albedo_detail)
+                     hdr_srgb, roughness_floor, soft_iou_loss, supervised_light_loss, with_albedo_detail)
 from .model_input import encoder_input
 
 

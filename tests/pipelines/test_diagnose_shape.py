@@ -18,8 +18,8 @@ def test_sunny_samples_are_under_a_sun_and_give_the_normals_where_it_is_mirrored
     from datagen.reader import MultiViewDataset
     from pipelines import metrics
     ds = MultiViewDataset(str(tiny_glossy), split="test", views_per_item=1)
-    sunny = diagnose_shape.test_samples(ds, objects=4, sunny=True)
-    every = diagnose_shape.test_samples(ds, objects=4, sunny=False)
+    sunny = diagnose_shape.fitted_samples(ds, objects=4, sunny=True)
+    every = diagnose_shape.fitted_samples(ds, objects=4, sunny=False)
     assert [obj for obj, _ in every] == list(dict.fromkeys(obj for obj, _ in ds.samples))
     for _, env in sunny:
         assert float(metrics.dominant_direction(ds.envmap(env)[None])[1]) >= metrics.SUN_FRACTION
