@@ -52,7 +52,7 @@ def shade_with_grads(shader, values, image, batch, num_images, rot=None):
                          torch.nn.functional.normalize(leaves["view"], dim=-1),
                          *(leaves[k] for k in FIELDS[2:]))
     out = shader(GBuffer(point, batch, num_images), EnvMap(leaves["image"], leaves.get("rot")))
-    w = torch.rand(out.shape, generator=torch.Generator().manual_seed(7), dtype=out.dtype)
+    w = torch.rand(out.shape, generator=torch.Generator().manual_seed(7), dtype=out.dtype).to(out.device)
     (out * w).sum().backward()
     return out.detach(), {k: t.grad for k, t in leaves.items()}
 
