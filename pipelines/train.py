@@ -75,8 +75,7 @@ def set_learning_rate(opt: torch.optim.Optimizer, config: TrainConfig, iteration
 
 def _setup_distributed():
     if "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        dist.init_process_group(backend)
+        dist.init_process_group("gloo")  # the model and its batches live on the CPU (NCCL takes CUDA tensors only)
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
 
