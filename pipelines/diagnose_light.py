@@ -193,10 +193,10 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             for k, d in found.items():
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
     _, sample = torch.cat(samples).unique(return_inverse=True)
-    d_gt, sunny = torch.cat(suns), torch.cat(sunny_views)
+    sun_dirs, sunny_all = torch.cat(suns), torch.cat(sunny_views)
     for surface, sums in sun_sums.items():  # the sun as one view places it, and as several do together
         for views, d in consensus_directions(torch.cat(sums), sample).items():
-            errors[f"sun pixels, {surface} surface, {views} of the sample"] = [metrics.angle_deg(d, d_gt)[sunny]]
+            errors[f"sun pixels, {surface} surface, {views} of the sample"] = [metrics.angle_deg(d, sun_dirs)[sunny_all]]
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
     errors = {k: torch.cat(v) for k, v in errors.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",

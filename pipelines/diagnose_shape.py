@@ -112,9 +112,11 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
     return raw.detach(), float(reached.detach()) if image else None
 
 
-def has_sun(ds: MultiViewDataset, env: int) -> bool:
-    """Whether env map ``env`` has a dominant light (``metrics.dominant_direction``'s share of its power)."""
-    return float(metrics.dominant_direction(ds.envmap(env)[None])[1]) >= metrics.SUN_FRACTION
+def sun_direction(ds: MultiViewDataset, env: int) -> torch.Tensor | None:
+    """(1, 3) the direction of env map ``env``'s dominant light, or None where it has none (a share of its power
+    below ``metrics.SUN_FRACTION``)."""
+    direction, share = metrics.dominant_direction(ds.envmap(env)[None])
+    return direction if float(share) >= metrics.SUN_FRACTION else None
 
 
 def fitted_samples(ds: MultiViewDataset, objects: int, sunny: bool) -> list[tuple[int, int]]:
@@ -122,7 +124,7 @@ def fitted_samples(ds: MultiViewDataset, objects: int, sunny: bool) -> list[tupl
     under its first map with a sun (objects without one left out)."""
     chosen = {}
     for obj, env in ds.samples:
-        if obj not in chosen and (not sunny or has_sun(ds, env)):
+        if obj not in chosen and (not sunny or sun_direction(ds, env) is not None):
             chosen[obj] = env
     return list(chosen.items())[:objects]
 
@@ -143,7 +145,7 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
         cameras, images = object_views(ds, obj, env)
         with torch.no_grad():
             gt = renderer.render_normals(ds.mesh(obj).expand(len(images)), cameras)
-        sun = metrics.dominant_direction(ds.envmap(env)[None])[0] if has_sun(ds, env) else None
+        sun = sun_direction(ds, env)
         material = ds.material_params(obj)
         light = None
         if any(s.startswith("image") for s in signals):
