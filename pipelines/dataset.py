@@ -8,15 +8,18 @@ from __future__ import annotations
 import torch
 
 from datagen.reader import MultiViewDataset
+from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 
 
 class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
-    so resumes are exact. ``envmaps`` and ``roughness`` load GT only for the diagnostics that read it."""
+    so resumes are exact. ``envmaps``, ``roughness`` and ``normals`` (the GT mesh's rendered in every view) load
+    GT only for the diagnostics that read it."""
 
-    def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False):
+    def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False,
+                 normals: bool = False):
         if ds.resolution != image_size:
             raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
                             f"{image_size}; pass --image-size {ds.resolution}")
@@ -38,6 +41,14 @@ class TrainingViews:
         self.fov = torch.tensor(fov, dtype=torch.float32).view(n_samples, n_views)
         self.resolution = image_size
         self.num_samples, self.num_views = n_samples, n_views
+        self.normals = self._gt_normals(ds) if normals else None
+
+    def _gt_normals(self, ds: MultiViewDataset) -> torch.Tensor:
+        """(samples, views, S, S, 4) the GT mesh's world-frame normals and coverage in every view."""
+        renderer = Renderer("sg")
+        with torch.no_grad():
+            return torch.stack([renderer.render_normals(ds.mesh(obj).expand(self.num_views), Cameras(
+                self.world_to_camera[k], self.fov[k], self.resolution)).image for k, (obj, _) in enumerate(ds.samples)])
 
     def _partners(self, samples: torch.Tensor, key: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """The batch's second half redrawn as partners of the first: for item k, a sample sharing its ``key``
@@ -71,6 +82,8 @@ class TrainingViews:
         s = samples.unsqueeze(1).expand(-1, 2)
         out = dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
                    sample=samples, partner=partner)
+        if self.normals is not None:
+            out["normals"] = self.normals[s, views]
         if self.roughness_of_sample is not None:
             out["roughness"] = self.roughness_of_sample[samples]
         if self.envmaps is not None:

@@ -12,7 +12,9 @@ sunny maps, and how high the sun stands decides where a mirror-like car shows it
   and at its full dynamic range;
 - (probe head) the run's own head fed the cue read through the GT mesh instead of the predicted one;
 - the predicted normals' error on the pixels both surfaces cover, and on those where the GT surface mirrors
-  the sun (its mirror direction within 10 degrees of it): how wrong the normals are where the sun shows;
+  the sun (its mirror direction within 10 degrees of it): how wrong the normals are where the sun shows; and
+  the same for each object's shape averaged over the views read (the predicted vertices' mean): whether the
+  error is each view's own (it would average out) or the object's;
 - (SG light) the run's light with a sun added where the cue through its own surface is brightest above the
   horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
   would give, with the rough-metal probe's si-RMSE of both lights;
@@ -141,6 +143,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
     errors, shares, probes, maps, elevations, normals = {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
+    shapes, read_views = {}, []  # each object's predicted vertices, and what its normals are measured on again
     with torch.no_grad():
         for start in range(0, len(views), 16):
             b = collate([ds[i] for i in views[start:start + 16]])
@@ -166,6 +169,9 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
             normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
+            for o, v in zip(b["object"].tolist(), pred.verts):
+                shapes.setdefault(o, []).append(v)
+            read_views.append((b["object"].tolist(), cams, rgba, d_gt, sunny, gt_meshes))
             sun_sums["predicted"].append(sun_pixel_sums(pred.meshes(), cams, rgba))
             sun_sums["GT"].append(torch.cat([sun_pixel_sums(m, cams[[k]], rgba[k:k + 1])
                                              for k, m in enumerate(gt_meshes)]))
@@ -197,6 +203,11 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     for surface, sums in sun_sums.items():  # the sun as one view places it, and as several do together
         for views, d in consensus_directions(torch.cat(sums), sample).items():
             errors[f"sun pixels, {surface} surface, {views} of the sample"] = [metrics.angle_deg(d, sun_dirs)[sunny_all]]
+    mean_shape = {o: torch.stack(v).mean(0) for o, v in shapes.items()}
+    with torch.no_grad():
+        averaged = torch.cat([metrics.normal_errors(model.template().with_verts(torch.stack([mean_shape[o] for o in objs])),
+                                                    gt_meshes, cams, rgba, d_gt)[sunny]
+                              for objs, cams, rgba, d_gt, sunny, gt_meshes in read_views])
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
     errors = {k: torch.cat(v) for k, v in errors.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",
@@ -215,8 +226,9 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
         if not len(v):
             raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
-    for name, v in zip(normal_rows, normals.T):
-        rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views)", "", "", ""])
+    for name, v, mean in zip(normal_rows, normals.T, averaged.T):
+        rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
+                     f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", ""])
     if shares:
         rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
     if probes:

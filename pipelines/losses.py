@@ -23,6 +23,14 @@ def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
+def normal_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """1 - cos between two normal renders' (``Renderer.render_normals(...).image``: (B, H, W, 4) normal and
+    coverage) over the pixels both cover."""
+    both = (pred[..., 3] > 0.5) & (target[..., 3] > 0.5)
+    cos = (F.normalize(pred[..., :3], dim=-1, eps=1e-12) * target[..., :3]).sum(-1)
+    return ((1 - cos) * both).sum() / both.sum().clamp_min(1)
+
+
 def foreground_l1(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
     """Mean L1 over foreground pixels; images (B, H, W, 3) in the same space, mask (B, H, W)."""
     m = target_mask.unsqueeze(-1)

@@ -17,7 +17,7 @@ from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, roughness_floor, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+                     hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, supervised_light_loss, with_albedo_detail)
 from .model_input import encoder_input
 
 
@@ -79,7 +79,7 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     terms = {
         "image": foreground_l1(rgb, target_rgb, target[..., 3]),
         "iou": soft_iou_loss(out.silhouette, target[..., 3]),
-        "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
+        "laplacian": laplacian_smoothness(pred.deformation(), laplacian) / pred.config.template_radius ** 2,
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
@@ -135,6 +135,10 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
+    if config.shape_supervision:  # each prediction's normals in its own input view against the GT mesh's there
+        own = renderer.render_normals(pred.meshes(), views).image
+        terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))
+        weights["shape_supervision"] = 1.0
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)

@@ -32,7 +32,7 @@ from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
-from . import light_prior, runs
+from . import light_prior, runs, shape_prior
 from .config import (PRESETS, VALUES_BEFORE_FIELD, ConfigError, TrainConfig, add_config_arguments, config_overrides,
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
@@ -129,7 +129,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     torch.manual_seed(config.seed)
     ds = dataset or open_train_split(config.dataset)  # before the run folder exists: bad data leaves nothing
     data = TrainingViews(ds, config.image_size, envmaps=bool(config.light_supervision),
-                         roughness=config.oracle_roughness)
+                         roughness=config.oracle_roughness, normals=config.shape_supervision)
     model = make_model(config)
     opt = make_optimizer(model, config)
     start = restore(ckpt, model, opt) if ckpt.exists() else 0
@@ -292,6 +292,8 @@ def main(argv=None) -> int:
         check_output_folder("--out", Path(config.out))
         if config.light_prior:  # fitted (or read from its cache) before the run starts, so a missing one stops it here
             light_prior.build(Path(config.light_prior))
+        if config.shape_prior:  # likewise (fitted by `make shape-prior`: ~12 min, not started from here)
+            shape_prior.read(Path(config.shape_prior))
         train(config, resume=args.resume, progress=not args.no_progress, dataset=ds)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -102,6 +102,7 @@ def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, 
     text = capsys.readouterr()
     assert status == 0 and "the run's sun lobe alone" in text.out and "a sun read off the cue" in text.out, text.err
     assert "° high" in text.out and "views of each test map" in text.out  # the by-map table
+    assert "each object's shape averaged over its views" in text.out
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--light-prior", str(tmp_path / "maps"),
                        "--out", str(tmp_path / "other"), "--no-progress"]) == 2
     assert "make light-prior" in capsys.readouterr().err

@@ -8,10 +8,11 @@ import pytest
 import torch
 
 from datagen.reader import MultiViewDataset
+from dibrpp import Cameras, Renderer
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
-from pipelines.losses import albedo_detail, darker_view_albedo_loss, roughness_floor, with_albedo_detail
+from pipelines.losses import albedo_detail, darker_view_albedo_loss, normal_loss, roughness_floor, with_albedo_detail
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
@@ -155,6 +156,27 @@ def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(t
     assert any(g.abs().max() > 0 for g in light_grads) and (texture_grad is None or texture_grad.abs().max() == 0)
     with pytest.raises(ValueError, match="light_supervision"):
         multiview_losses(model, make_renderer(cfg, 0), b, config(tiny_glossy, "unused", lobes=4, light_supervision="sun"), lap)
+
+
+def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_in_its_input_view(tiny_glossy):
+    """The diagnostic --shape-supervision: the batch carries the GT mesh's normals in each item's views (zero
+    loss for the GT mesh itself), and with every other weight at 0 only the shape learns."""
+    data = TrainingData(str(tiny_glossy), 32, normals=True)
+    b = data.batch(0, 2, seed=0)
+    ds = MultiViewDataset(str(tiny_glossy), views_per_item=1)
+    obj = ds.samples[int(b["sample"][0])][0]
+    cams = Cameras(b["world_to_camera"][0], b["fov"][0], 32)
+    truth = Renderer("sg").render_normals(ds.mesh(obj).expand(2), cams).image
+    assert float(normal_loss(truth, b["normals"][0])) < 1e-6 and float(b["normals"][0][..., 3].mean()) > 0.05
+    assert "normals" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
+    cfg = config(tiny_glossy, "unused", lobes=4, shape_supervision=True, w_image=0.0, w_iou=0.0, w_laplacian=0.0,
+                 w_gradient=0.0)
+    model = make_model(cfg)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), b, cfg, lap)
+    assert total.item() == pytest.approx(terms["shape_supervision"].item()) and total.item() > 0
+    total.backward()
+    assert model.shape_head.bias.grad.abs().max() > 0 and model.material_head.weight.grad.abs().max() == 0
 
 
 def test_oracle_roughness_renders_with_each_objects_ground_truth(tiny_glossy, tmp_path):
