@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: light-prior shape-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
+.PHONY: light-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~4.5 h)"
@@ -35,7 +35,6 @@ help:
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
 	@echo "make light-prior      env maps without objects and the light prior fitted to them (variant light-prior; ~10 min)"
-	@echo "make shape-prior      the template fitted to 100 procedural cars and their PCA (variant shape-prior; ~12 min)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -103,11 +102,6 @@ light-prior: $(VENV)/.installed
 	$(PY) -m datagen.prior_maps --out $(DATA)/light-prior
 	$(PY) -m pipelines.light_prior --maps $(DATA)/light-prior
 
-# The shape prior (variant shape-prior): the template fitted to 100 procedural cars' normals and outlines
-# (~12 min on 2 cores; resumable) and their PCA, cached and refitted when the car generator changes.
-shape-prior: $(VENV)/.installed
-	$(PY) -m pipelines.shape_prior --out $(DATA)/shape-prior
-
 bench-renderer: $(VENV)/.installed
 	$(PY) -m benchmarks.renderer --out results/bench
 
@@ -123,7 +117,6 @@ train-ablations: $(VENV)/.installed
 VARIANT_KINDS ?= ablation,diagnostic
 train-variants: $(VENV)/.installed
 	@$(MAKE) --no-print-directory light-prior  # the light-prior variant's maps (done and cached after the first time)
-	@$(MAKE) --no-print-directory shape-prior  # the shape-prior variant's cars (likewise)
 	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=$(VARIANT_KINDS)
 
 train-variant-runs: $(VENV)/.installed

@@ -67,8 +67,6 @@ class TrainConfig:
                               "covers (rasterised) or its texels' projections", ("pixels", "texels"))
     light_prior: str = _opt("", "folder of env maps whose log-luminance PCA the probe head's SG sky lives in "
                             "(pipelines.light_prior; `make light-prior`); '' for none")
-    shape_prior: str = _opt("", "folder of the shape prior (pipelines.shape_prior; `make shape-prior`): the shape "
-                            "starts at its mean car and moves along its components; '' for none (the sphere)")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
     sun_lobe: str = _opt("learned", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
@@ -270,9 +268,6 @@ VARIANTS: dict[str, Variant] = {
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
-    "shape-prior": Variant("the shape starts at the mean of 100 procedural cars' fitted templates and moves along "
-                           "their 24 principal components besides its own offsets (no sphere)",
-                           {"shape_prior": "data/shape-prior"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

@@ -32,7 +32,6 @@ import time
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
@@ -45,7 +44,7 @@ from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
 from . import metrics
 from .config import TrainConfig
-from .losses import foreground_l1, gradient_loss, hdr_srgb, roughness_floor, soft_iou_loss
+from .losses import foreground_l1, gradient_loss, hdr_srgb, normal_loss, roughness_floor, soft_iou_loss
 from .model import Encoder, ModelConfig
 
 SIGNALS = ("normals", "silhouettes", "image", "image-from-normals", "image-annealed")
@@ -98,11 +97,7 @@ def fit_shape(model: Encoder, signal: str, cameras: Cameras, images: torch.Tenso
             loss = weights.w_image * reached + weights.w_gradient * gradient_loss(rgb, target * images[..., 3:])
         else:
             out = renderer.render_normals(meshes, cameras)
-            loss = torch.zeros(())
-            if signal == "normals":
-                both = (out.alpha > 0.5) & (gt_normals.alpha > 0.5)
-                cos = (F.normalize(out.rgb[..., :3], dim=-1, eps=1e-12) * gt_normals.rgb[..., :3]).sum(-1)
-                loss = ((1 - cos) * both).sum() / both.sum().clamp_min(1)
+            loss = normal_loss(out.image, gt_normals.image) if signal == "normals" else torch.zeros(())
         loss = loss + weights.w_iou * soft_iou_loss(out.silhouette, images[..., 3]) + smooth
         opt.zero_grad()
         loss.backward()

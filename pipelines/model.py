@@ -41,7 +41,6 @@ from .template import mirror_index, texel_barycentrics
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
 MODEL_VERSION = 8  # bump when parameters or their meaning change: old checkpoints are refused or migrated
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
-PRIOR_BOUND = 3.0  # the shape prior's coefficients stay within this many of their spread
 # fields added since an older version, with the value that reproduces the model that version trained
 _CLIPPED = {"input_range": "clipped"}
 MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}, 3: {"light_head": "global", **_CLIPPED},
@@ -84,9 +83,6 @@ class ModelConfig:
     probe_samples: str = "pixels"
     # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
     light_prior: int = 0
-    # components of the shape prior (pipelines.shape_prior): the shape starts at its mean car and moves along
-    # them besides its own offsets; 0: none (the template sphere)
-    shape_prior: int = 0
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
     # clipped at 1, as an 8-bit picture shows it (versions up to 7)
     input_range: str = "full"
@@ -152,22 +148,15 @@ class Prediction:
     """What the encoder predicts for a batch of B images; converts to renderer objects."""
 
     def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes,
-                 facing: torch.Tensor | None = None, prior_shape: torch.Tensor | None = None):
+                 facing: torch.Tensor | None = None):
         self.verts, self.texture = verts, texture
         # (B, Ht, Wt): how squarely each texel faced the input camera (0: away); None for the global texture
         self.facing = facing
-        # (B, V, 3): the part of ``verts`` the shape prior gives (its car); None without a prior
-        self.prior_shape = prior_shape
         self.roughness, self.specular, self.metallic = roughness, specular, metallic
         self.light_params, self.config, self.template = light_params, config, template
 
     def meshes(self) -> Meshes:
         return self.template.with_verts(self.verts)
-
-    def deformation(self) -> torch.Tensor:
-        """(B, V, 3) the vertices less the shape prior's car: what the smoothness term smooths (a prior's car
-        keeps the breaks between its panels)."""
-        return self.verts if self.prior_shape is None else self.verts - self.prior_shape
 
     def material(self) -> Material:
         return Material(albedo=self.texture, roughness=self.roughness, metallic=self.metallic,
@@ -194,8 +183,7 @@ class Prediction:
         """A prediction with ``fn`` applied to every tensor (and the light's parameters replaced, if given)."""
         light = light_params if light_params is not None else {k: fn(v) for k, v in self.light_params.items()}
         return Prediction(fn(self.verts), fn(self.texture), fn(self.roughness), fn(self.specular), fn(self.metallic),
-                          light, self.config, self.template, None if self.facing is None else fn(self.facing),
-                          None if self.prior_shape is None else fn(self.prior_shape))
+                          light, self.config, self.template, None if self.facing is None else fn(self.facing))
 
     def detached(self) -> "Prediction":
         return self._replace(torch.Tensor.detach)
@@ -242,11 +230,7 @@ class Encoder(nn.Module):
         self.register_buffer("texel_face", face)
         self.register_buffer("texel_bary", bary)
         n_verts = template.verts.shape[1]
-        # offsets, the shape prior's coefficients (if any), per-axis scale (a sigmoid onto scale_range)
-        self.shape_head = nn.Linear(512, n_verts * 3 + c.shape_prior + 3)
-        if c.shape_prior:  # filled by set_shape_prior; saved with every checkpoint
-            self.register_buffer("prior_mean", torch.zeros(n_verts, 3))
-            self.register_buffer("prior_basis", torch.zeros(c.shape_prior, n_verts, 3))
+        self.shape_head = nn.Linear(512, n_verts * 3 + 3)  # offsets + per-axis scale (a sigmoid onto scale_range)
         th, tw = c.texture_height // 8, c.texture_width // 8
         self.tex_fc = nn.Linear(512, 4 * w * th * tw)
         self.tex_dec = nn.Sequential(
@@ -309,33 +293,15 @@ class Encoder(nn.Module):
     def template(self) -> Meshes:
         return Meshes(self.template_dirs, self.faces, self.uvs, self.face_uvs)
 
-    def set_shape_prior(self, prior: dict) -> None:
-        """Copy a fitted prior (pipelines.shape_prior.build): its mean car as offsets from the template sphere at
-        its start radius, and its components scaled by their spread."""
-        k = self.config.shape_prior
-        if prior["basis"].shape[0] < k or prior["basis"].shape[1:] != self.prior_basis.shape[1:]:
-            raise ValueError(f"the shape prior has {tuple(prior['basis'].shape)} components, the model asks for "
-                             f"({k}, {self.prior_basis.shape[1]}, 3); refit it with `make shape-prior`")
-        self.prior_mean.copy_(prior["mean"] - self.config.template_radius * self.template_dirs[0])
-        self.prior_basis.copy_(prior["basis"][:k] * prior["std"][:k, None, None])
-
     def _shape(self, raw: torch.Tensor) -> torch.Tensor:
         c = self.config
-        b, n = raw.shape[0], self.template_dirs.shape[1] * 3
+        b = raw.shape[0]
         lo, hi = c.scale_range
         scale = c.template_radius * (lo + (hi - lo) * torch.sigmoid(raw[:, -3:]))  # (B, 3)
-        offsets = c.max_offset * torch.tanh(raw[:, :n].view(b, -1, 3) / c.max_offset)
+        offsets = c.max_offset * torch.tanh(raw[:, :-3].view(b, -1, 3) / c.max_offset)
         if c.symmetric:
             offsets = 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
-        verts = self.template_dirs * scale.unsqueeze(1) + offsets
-        return verts if not c.shape_prior else verts + self._prior_shape(raw)
-
-    def _prior_shape(self, raw: torch.Tensor) -> torch.Tensor:
-        """(B, V, 3) the shape prior's car: its mean plus the components, each coefficient within PRIOR_BOUND of
-        its spread (the prior is symmetric, so the car is too)."""
-        n = self.template_dirs.shape[1] * 3
-        coeffs = PRIOR_BOUND * torch.tanh(raw[:, n:-3] / PRIOR_BOUND)
-        return self.prior_mean + torch.einsum("bk,kvc->bvc", coeffs, self.prior_basis)
+        return self.template_dirs * scale.unsqueeze(1) + offsets
 
     def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor,
                  texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -404,8 +370,7 @@ class Encoder(nn.Module):
         images = self.visible_input(images)
         stem = self.stem(images)
         f = self.fc(self.backbone(stem))
-        raw_shape = self.shape_head(f)
-        verts = self._shape(raw_shape)
+        verts = self._shape(self.shape_head(f))
         needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
         texture, facing = self._texture(f, stem, images, texels)
@@ -421,8 +386,7 @@ class Encoder(nn.Module):
             light = self._light_from_code(f)
         if c.light_colour == "white":
             light = white_balance(light, kind, c.env_height)
-        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing,
-                          self._prior_shape(raw_shape) if c.shape_prior else None)
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
 
     def _light_from_code(self, f: torch.Tensor) -> dict:
         """The light regressed from the global code (the paper's head)."""

@@ -79,7 +79,7 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     terms = {
         "image": foreground_l1(rgb, target_rgb, target[..., 3]),
         "iou": soft_iou_loss(out.silhouette, target[..., 3]),
-        "laplacian": laplacian_smoothness(pred.deformation(), laplacian) / pred.config.template_radius ** 2,
+        "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}

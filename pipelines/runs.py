@@ -23,7 +23,7 @@ import torch
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
-from . import light_prior, shape_prior
+from . import light_prior
 from .config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from .model import Encoder, ModelConfig
 
@@ -185,12 +185,9 @@ def make_model(config: TrainConfig) -> Encoder:
                                light_colour=config.light_colour, light_scale=config.light_scale,
                                light_head=config.resolved_light_head(), probe_start=config.probe_start,
                                probe_samples=config.probe_samples, input_range=config.input_range, sun_lobe=config.sun_lobe,
-                               light_prior=light_prior.COMPONENTS if prior else 0,
-                               shape_prior=shape_prior.COMPONENTS if config.shape_prior else 0))
+                               light_prior=light_prior.COMPONENTS if prior else 0))
     if prior:
         model.light_head.set_prior(prior)
-    if config.shape_prior:
-        model.set_shape_prior(shape_prior.read(Path(config.shape_prior)))
     return model
 
 

@@ -32,7 +32,7 @@ from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
-from . import light_prior, runs, shape_prior
+from . import light_prior, runs
 from .config import (PRESETS, VALUES_BEFORE_FIELD, ConfigError, TrainConfig, add_config_arguments, config_overrides,
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
@@ -292,8 +292,6 @@ def main(argv=None) -> int:
         check_output_folder("--out", Path(config.out))
         if config.light_prior:  # fitted (or read from its cache) before the run starts, so a missing one stops it here
             light_prior.build(Path(config.light_prior))
-        if config.shape_prior:  # likewise (fitted by `make shape-prior`: ~12 min, not started from here)
-            shape_prior.read(Path(config.shape_prior))
         train(config, resume=args.resume, progress=not args.no_progress, dataset=ds)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -134,6 +134,18 @@ def test_roughness_curriculum_blurs_the_renders_first_then_leaves_the_predicted_
     assert not torch.allclose(renders[0], renders[1]) and torch.equal(renders[1], renders[2])
 
 
+def _trained_by_one_term(tiny_glossy, batch: dict, term: str, **fields):
+    """A fresh model after one backward pass of the losses with every image weight at 0, so that the diagnostic
+    ``term`` (set on by ``fields``) is the whole loss; and the Laplacian it was given."""
+    cfg = config(tiny_glossy, "unused", lobes=4, w_image=0.0, w_iou=0.0, w_laplacian=0.0, w_gradient=0.0, **fields)
+    model = make_model(cfg)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, lap)
+    assert total.item() == pytest.approx(terms[term].item()) and total.item() > 0
+    total.backward()
+    return model, lap
+
+
 @pytest.mark.parametrize("kind", ["map", "probe"])
 def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(tiny_glossy, kind):
     """The diagnostic --light-supervision: the batch carries each item's GT env map, and with every other
@@ -144,18 +156,22 @@ def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(t
     for k, sample in enumerate(b["sample"].tolist()):
         assert torch.equal(b["envmap"][k], ds.envmap(ds.samples[sample][1]))
     assert "envmap" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
-    cfg = config(tiny_glossy, "unused", lobes=4, light_supervision=kind, w_image=0.0, w_iou=0.0, w_laplacian=0.0,
-                 w_gradient=0.0)
-    model = make_model(cfg)
-    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
-    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), b, cfg, lap)
-    assert total.item() == pytest.approx(terms["light_supervision"].item()) and total.item() > 0
-    total.backward()
+    model, lap = _trained_by_one_term(tiny_glossy, b, "light_supervision", light_supervision=kind)
     texture_grad = model.tex_out[2].weight.grad
     light_grads = [p.grad for p in model.light_head.parameters() if p.grad is not None]
     assert any(g.abs().max() > 0 for g in light_grads) and (texture_grad is None or texture_grad.abs().max() == 0)
     with pytest.raises(ValueError, match="light_supervision"):
-        multiview_losses(model, make_renderer(cfg, 0), b, config(tiny_glossy, "unused", lobes=4, light_supervision="sun"), lap)
+        sun = config(tiny_glossy, "unused", lobes=4, light_supervision="sun")
+        multiview_losses(model, make_renderer(sun, 0), b, sun, lap)
+
+
+def test_normal_loss_is_one_minus_the_cosine_over_the_pixels_both_renders_cover():
+    pred, target = torch.zeros(1, 2, 2, 4), torch.zeros(1, 2, 2, 4)
+    pred[..., 0], target[..., 0] = 2.0, 1.0  # the same direction (a predicted normal need not be unit length)
+    pred[0, 0, 0, :3] = torch.tensor([1.0, 3 ** 0.5, 0.0])  # 60 degrees off: 1 - cos = 0.5
+    pred[..., 3], target[..., 3] = 1.0, 1.0
+    target[0, 1, 1, 3] = 0.0  # not covered by the target: not counted
+    assert float(normal_loss(pred, target)) == pytest.approx(0.5 / 3)
 
 
 def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_in_its_input_view(tiny_glossy):
@@ -169,13 +185,7 @@ def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_i
     truth = Renderer("sg").render_normals(ds.mesh(obj).expand(2), cams).image
     assert float(normal_loss(truth, b["normals"][0])) < 1e-6 and float(b["normals"][0][..., 3].mean()) > 0.05
     assert "normals" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
-    cfg = config(tiny_glossy, "unused", lobes=4, shape_supervision=True, w_image=0.0, w_iou=0.0, w_laplacian=0.0,
-                 w_gradient=0.0)
-    model = make_model(cfg)
-    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
-    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), b, cfg, lap)
-    assert total.item() == pytest.approx(terms["shape_supervision"].item()) and total.item() > 0
-    total.backward()
+    model, _ = _trained_by_one_term(tiny_glossy, b, "shape_supervision", shape_supervision=True)
     assert model.shape_head.bias.grad.abs().max() > 0 and model.material_head.weight.grad.abs().max() == 0
 
 
