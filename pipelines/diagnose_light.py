@@ -14,16 +14,16 @@ sunny maps, and how high the sun stands decides where a mirror-like car shows it
 - the predicted normals' error on the pixels both surfaces cover, and on those where the GT surface mirrors
   the sun (its mirror direction within 10 degrees of it): how wrong the normals are where the sun shows; and
   the same for each object's shape averaged over the views read (the predicted vertices' mean): whether the
-  error is each view's own (it would average out) or the object's;
+  error is each view's own (it would average out) or the object's (entry 19: the object's);
 - (SG light) the run's light with a sun added where the cue through its own surface is brightest above the
   horizon, as bright as the cue shows it (``light_probe.cue_sun_power``): what a live sun read off the probe
   would give, with the rough-metal probe's si-RMSE of both lights;
 - the pixels that show the sun (the brightest, in views where they stand far above the rest), their mirror
   directions through the predicted surface and through the GT mesh averaged over one view, over it and the
-  next view of the same object under the same map, and over every view of it: how much of a view's error
-  is its own (it averages out over views) and how much the surface's (it does not).
+  next view of the same object under the same map, and over every view of it: how much better several views
+  place the sun than one (its highlight falls on different parts of the surface in each).
 
-Each row is a limit the light head works within; docs/experiments.md (entries 12, 13, 16 and 18) reads them.
+Each row is a limit the light head works within; docs/experiments.md (entries 12, 13, 16, 18 and 19) reads them.
 """
 from __future__ import annotations
 
