@@ -1,6 +1,7 @@
 """Training-iteration benchmark: time per iteration of the CPU default config and its split.
 
-    python -m benchmarks.train_step --dataset data/glossy [--shading sg] [--iterations 20]
+    python -m benchmarks.train_step --dataset data/glossy [--shading sg] [--iterations 20] [--device cuda]
+        [--variant vertex-features]
 
 Phases: data (drawing the batch from the decoded tensors), encoder (forward), render + losses
 (eq. 8 and the cross-view renders again under their own light: 48 renders of 64x64 for 8 objects x 2 views),
@@ -31,25 +32,32 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
     """Median seconds per phase over ``iterations`` training steps (after ``warmup``)."""
     torch.manual_seed(config.seed)
     data = TrainingViews(MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False),
-                         config.image_size)
-    model = make_model(config)
+                         config.image_size, device=config.device)
+    model = make_model(config).to(config.device)
     opt = make_optimizer(model, config)
-    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
+    cuda = config.device == "cuda"
+
+    def now() -> float:  # a GPU's queued work counted in the phase that queued it
+        if cuda:
+            torch.cuda.synchronize()
+        return time.perf_counter()
+
     encoder_s = []
-    model.register_forward_pre_hook(lambda *_: encoder_s.append(-time.perf_counter()))
-    model.register_forward_hook(lambda *_: encoder_s.__setitem__(-1, encoder_s[-1] + time.perf_counter()))
+    model.register_forward_pre_hook(lambda *_: encoder_s.append(-now()))
+    model.register_forward_hook(lambda *_: encoder_s.__setitem__(-1, encoder_s[-1] + now()))
     rows = []
     for it in range(warmup + iterations):
-        t0 = time.perf_counter()
+        t0 = now()
         batch = data.batch(it, config.batch_objects, config.seed)
-        t1 = time.perf_counter()
+        t1 = now()
         total, _, _ = multiview_losses(model, make_renderer(config, seed=it, training=True), batch, config, laplacian)
-        t2 = time.perf_counter()
+        t2 = now()
         opt.zero_grad(set_to_none=True)
         total.backward()
-        t3 = time.perf_counter()
+        t3 = now()
         opt.step()
-        t4 = time.perf_counter()
+        t4 = now()
         enc = encoder_s[-1]
         rows.append(dict(data=t1 - t0, encoder=enc, **{"render+losses": t2 - t1 - enc}, backward=t3 - t2,
                          optimizer=t4 - t3, total=t4 - t0))
@@ -68,6 +76,9 @@ def build_parser() -> Parser:
     ap.add_argument("--iterations", type=positive_int, default=10, metavar="N", help="timed iterations")
     ap.add_argument("--warmup", type=non_negative_int, default=2, metavar="N",
                     help="untimed iterations first (torch.compile compiles here)")
+    ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.config to time "
+                    "(default: the default model)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the step runs (default: cpu)")
     ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
     return ap
 
@@ -76,11 +87,17 @@ def configs(args) -> list[TrainConfig]:
     """One config per --shading on the dataset's resolution, --out checked: all before any timing."""
     check_output_folder("--out", Path(args.out))
     try:
+        TrainConfig.from_dict({"variant": args.variant})
+    except ConfigError as e:
+        raise DataError(f"--variant: {e}") from None
+    try:
         resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
     except DataError as e:
         raise DataError(f"{e}; run `make data` (or pass --dataset)") from None
     try:
-        return [TrainConfig.preset("cpu", dataset=args.dataset, shading=s, image_size=resolution) for s in args.shading]
+        return [TrainConfig.preset("cpu", dataset=args.dataset, shading=s, image_size=resolution, device=args.device,
+                                   variant=args.variant)
+                for s in args.shading]
     except ConfigError as e:
         raise DataError(f"--dataset {args.dataset}: {e}") from None
 
@@ -90,7 +107,8 @@ def write_results(results: list[dict], config: TrainConfig, iterations: int, out
     cols = ["shading", *PHASES, "total"]
     write_csv(out / "train.csv", results, cols)
     res = config.image_size
-    lines = [f"Training iteration, CPU default config ({config.batch_objects} objects x 2 views, "
+    model = f"variant {config.variant}" if config.variant else "CPU default config"
+    lines = [f"Training iteration on {config.device}, {model} ({config.batch_objects} objects x 2 views, "
              f"{4 * config.batch_objects} renders of {res}x{res}, K={config.lobes}, MC spp={config.spp}); ms, "
              f"median of {iterations}", "",
              markdown_table(cols, [[r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]] for r in results])]
@@ -102,8 +120,11 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     results = []
     try:
+        if args.device == "cuda" and not torch.cuda.is_available():
+            raise DataError("--device cuda: torch sees no CUDA device here; use --device cpu")
         runs = configs(args)
-        print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; median of {args.iterations} iterations")
+        where = torch.cuda.get_device_name() if args.device == "cuda" else f"cpu, {torch.get_num_threads()} threads"
+        print(f"torch {torch.__version__}, {where}; median of {args.iterations} iterations")
         for config in runs:
             r = time_iterations(config, args.iterations, args.warmup)
             r = {"shading": config.shading, **{k: 1000 * v for k, v in r.items()}}

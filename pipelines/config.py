@@ -73,6 +73,9 @@ class TrainConfig:
                          "at least what the mirror cue shows near its axis above the sky's level, with its axis above "
                          "the horizon, and what the cue adds not bending the surface it was read through (probe)",
                          ("learned", "probe"))
+    shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
+                             "image features show where it projects (features), or the global shape alone (none)",
+                             ("none", "features"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
@@ -96,6 +99,8 @@ class TrainConfig:
     visibility: str = _opt("dibr", "silhouette gradient: soft silhouette, or antialiased edges (Sec. F.1)",
                            ("dibr", "edge_aa"))
     threads: int = _opt(0, "torch threads per process (0: torch's default)", minimum=0)
+    device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
+                       ("cpu", "cuda"))
     compile: bool = _opt(True, "G-buffer and shading through torch.compile (eager where it cannot)")
     variant: str = _opt("", "the named variant this run trains ('' for the default model; see --list-variants)")
 
@@ -268,6 +273,9 @@ VARIANTS: dict[str, Variant] = {
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
+    "vertex-features": Variant("each vertex displaced along its normal by pixel-aligned image features (a U-Net's up "
+                               "path) read where it projects: the shape read from the input's pixels",
+                               {"shape_detail": "features"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),
@@ -276,6 +284,10 @@ VARIANTS: dict[str, Variant] = {
     "shape-supervised": Variant("the predicted normals supervised by the GT mesh's in the input view: what one view can "
                                 "predict of the normals when told them",
                                 {"shape_supervision": True}, kind="diagnostic"),
+    "vertex-features-supervised": Variant("vertex-features with its normals supervised as in shape-supervised: what "
+                                          "a shape read from the pixels can predict of the normals when told them",
+                                          {"shape_detail": "features", "shape_supervision": True}, kind="diagnostic",
+                                          runs=(("metallic", 0),)),
     "oracle-roughness": Variant("renders use each object's GT roughness (the roughness/light-blur ambiguity)",
                                 {"oracle_roughness": True}, kind="diagnostic"),
 }

@@ -16,10 +16,11 @@ class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
     so resumes are exact. ``envmaps``, ``roughness`` and ``normals`` (the GT mesh's rendered in every view) load
-    GT only for the diagnostics that read it."""
+    GT only for the diagnostics that read it. The tensors live on ``device``; the batches' indices are drawn on the
+    CPU, so a run draws the same batches on either."""
 
     def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False,
-                 normals: bool = False):
+                 normals: bool = False, device: str | torch.device = "cpu"):
         if ds.resolution != image_size:
             raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
                             f"{image_size}; pass --image-size {ds.resolution}")
@@ -42,6 +43,13 @@ class TrainingViews:
         self.resolution = image_size
         self.num_samples, self.num_views = n_samples, n_views
         self.normals = self._gt_normals(ds) if normals else None
+        self.images, self.world_to_camera, self.fov = (t.to(device) for t in (self.images, self.world_to_camera, self.fov))
+        if self.normals is not None:
+            self.normals = self.normals.to(device)
+        if self.roughness_of_sample is not None:
+            self.roughness_of_sample = self.roughness_of_sample.to(device)
+        if self.envmaps is not None:
+            self.envmaps = {env: m.to(device) for env, m in self.envmaps.items()}
 
     def _gt_normals(self, ds: MultiViewDataset) -> torch.Tensor:
         """(samples, views, S, S, 4) the GT mesh's world-frame normals and coverage in every view."""

@@ -31,11 +31,12 @@ from dibrpp import conventions
 from dibrpp.brdf import MIN_ALPHA, Material
 from dibrpp.camera import Cameras
 from dibrpp.lights import EnvMap, SGLight, SHLight
-from dibrpp.mesh import Meshes, icosphere, vertex_normals
+from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
 from dibrpp.sg import sg_integral
 
 from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
 from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_radiance
+from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
@@ -51,7 +52,7 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe")}
+           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features")}
 
 
 @dataclass
@@ -89,6 +90,9 @@ class ModelConfig:
     # the probe head's SG sun: its power learned, or at least what the mirror cue shows near its axis, with the
     # axis above the horizon (ProbeLightHead)
     sun_lobe: str = "learned"
+    # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
+    # show where it projects (pipelines.shape_detail); none: the global shape alone
+    shape_detail: str = "none"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -241,6 +245,8 @@ class Encoder(nn.Module):
         self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
                                      nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
+        if c.shape_detail == "features":
+            self.shape_detail = PixelAlignedDetail(w, uniform_laplacian(template.faces, template.verts.shape[1]))
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
@@ -368,9 +374,16 @@ class Encoder(nn.Module):
         projected texture and the probe light head)."""
         c = self.config
         images = self.visible_input(images)
-        stem = self.stem(images)
-        f = self.fc(self.backbone(stem))
+        levels = [self.stem(images)]  # stem, then each backbone level (the shape detail's pyramid)
+        for block in self.backbone:
+            levels.append(block(levels[-1]))
+        stem, f = levels[0], self.fc(levels[-1])
         verts = self._shape(self.shape_head(f))
+        if c.shape_detail == "features":
+            if cameras is None:
+                raise ValueError("a pixel-aligned shape detail needs the input cameras: call the encoder with cameras=...")
+            verts = verts + self.shape_detail(verts.detach(), self.faces, self.mirror, self.template_dirs, images,
+                                              levels, f, cameras)
         needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
         texture, facing = self._texture(f, stem, images, texels)

@@ -123,7 +123,7 @@ def read_checkpoint(path: Path) -> dict:
     """A checkpoint's state, read as tensors and plain data only (a pickled object from someone else's run
     cannot run code here)."""
     try:
-        state = torch.load(path, weights_only=True)
+        state = torch.load(path, weights_only=True, map_location="cpu")  # a run trained on a GPU reads anywhere
     except FileNotFoundError:
         raise DataError(f"{path}: no checkpoint") from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, ValueError) as e:
@@ -185,6 +185,7 @@ def make_model(config: TrainConfig) -> Encoder:
                                light_colour=config.light_colour, light_scale=config.light_scale,
                                light_head=config.resolved_light_head(), probe_start=config.probe_start,
                                probe_samples=config.probe_samples, input_range=config.input_range, sun_lobe=config.sun_lobe,
+                               shape_detail=config.shape_detail,
                                light_prior=light_prior.COMPONENTS if prior else 0))
     if prior:
         model.light_head.set_prior(prior)

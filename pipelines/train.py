@@ -81,7 +81,8 @@ def _setup_distributed():
 
 
 # settings a resumed run may change: how long it trains and how it reports, not what it trains
-CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint_every", "threads", "compile", "out")
+CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint_every", "threads", "compile", "out",
+                        "device")
 
 
 def check_resumable(run: Path, config: TrainConfig) -> None:
@@ -118,6 +119,10 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     """Train (or with ``resume`` continue) the run ``config.out``; ``dataset``: its training split, if open."""
     config.validate()
     rank, world = _setup_distributed()
+    if config.device == "cuda" and world > 1:
+        raise ValueError("--device cuda trains in one process; data-parallel runs (torchrun) are CPU-only so far")
+    if config.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
     if config.threads:
         torch.set_num_threads(config.threads)
     out = Path(config.out)
@@ -129,12 +134,12 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     torch.manual_seed(config.seed)
     ds = dataset or open_train_split(config.dataset)  # before the run folder exists: bad data leaves nothing
     data = TrainingViews(ds, config.image_size, envmaps=bool(config.light_supervision),
-                         roughness=config.oracle_roughness, normals=config.shape_supervision)
-    model = make_model(config)
+                         roughness=config.oracle_roughness, normals=config.shape_supervision, device=config.device)
+    model = make_model(config).to(config.device)
     opt = make_optimizer(model, config)
     start = restore(ckpt, model, opt) if ckpt.exists() else 0
     ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
     if start >= config.iterations:  # before anything is written: a finished run's folder stays as it is
         if rank == 0:
             print(f"{out}: already trained ({start} iterations); nothing to do")

@@ -27,3 +27,4 @@ def test_training_benchmark_splits_an_iteration(tiny_glossy, tmp_path):
     parts = sum(float(row[k]) for k in bench_train.PHASES)
     assert abs(parts - float(row["total"])) < 0.05 * float(row["total"]) + 1
     assert bench_train.main(["--dataset", str(tmp_path / "missing")]) == 2
+    assert bench_train.main(["--dataset", str(tiny_glossy), "--variant", "no-such-variant"]) == 2

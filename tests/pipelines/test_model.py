@@ -9,7 +9,7 @@ import torch
 from dibrpp import Cameras, Renderer
 from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
-from dibrpp.mesh import icosphere
+from dibrpp.mesh import icosphere, uniform_laplacian, vertex_normals
 from pipelines import losses
 from pipelines.light_probe import compress_radiance, pixel_samples
 from pipelines.model import Encoder, ModelConfig, squash, white_balance
@@ -80,6 +80,33 @@ def test_shape_is_mirror_symmetric_and_starts_at_the_template_radius():
     v = model(torch.rand(1, 4, 32, 32), _cams(1)).verts[0]
     mirrored = v[model.mirror] * torch.tensor([1.0, -1.0, 1.0])
     assert torch.allclose(v, mirrored, atol=1e-4)
+
+
+def test_the_pixel_aligned_detail_starts_at_zero_and_moves_the_surface_along_its_normals_smoothly():
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=32, shape_detail="features"))
+    images, cams = torch.rand(2, 4, 32, 32), _cams(2)
+    assert torch.allclose(model(images, cams).verts.norm(dim=-1), torch.full((2, 642), 12.0), atol=1e-3)
+    detail = model.shape_detail
+    assert torch.allclose(detail.smoothing.sum(1), torch.ones(642), atol=1e-5)  # a constant field is kept
+    with torch.no_grad():  # a constant output: the sphere grows by exactly the bounded displacement
+        detail.mlp[-1].bias.fill_(1.0)
+    expected = 12.0 + 3.0 * math.tanh(1.0 / 3.0)
+    assert torch.allclose(model(images, cams).verts.norm(dim=-1), torch.full((2, 642), expected), atol=1e-3)
+    with torch.no_grad():  # any output: displacements along the normals, mirror-symmetric, smoother than read
+        detail.mlp[-1].weight.normal_(0, 1.0)
+        detail.mlp[-1].bias.zero_()
+    pred = model(images, cams)
+    shift = pred.verts - model.template_dirs * 12.0
+    normals = vertex_normals(model.template_dirs * 12.0, model.faces).expand_as(shift)  # the global shape's
+    assert torch.allclose(torch.linalg.cross(shift, normals), torch.zeros_like(shift), atol=1e-4)
+    radial = (shift * normals).sum(-1)
+    assert torch.allclose(pred.verts[:, model.mirror] * torch.tensor([1.0, -1.0, 1.0]), pred.verts, atol=1e-4)
+    assert radial.abs().max() > 0.05
+    # the smoothing is a low-pass over the mesh: vertex-to-vertex noise loses most of its roughness
+    laplacian = uniform_laplacian(model.faces, 642)
+    noise = torch.randn(642, 1)
+    assert (laplacian @ (detail.smoothing @ noise)).norm() < 0.2 * (laplacian @ noise).norm()
 
 
 def test_texels_follow_the_template_surface():

@@ -323,6 +323,65 @@ def test_cli_errors_are_clear(tmp_path):
     assert r.returncode == 2 and "make data" in r.stderr
 
 
+def _rendered_batch(items: int = 2, size: int = 32) -> dict:
+    """A training batch by hand: a sphere and a box-ish ellipsoid rendered by dibrpp in two orbit views each."""
+    from dibrpp.brdf import Material
+    from dibrpp.lights import SGLight
+    from dibrpp.mesh import icosphere
+
+    torch.manual_seed(0)
+    images, w2c = [], []
+    for i in range(items):
+        mesh = icosphere(2, radius=12.0)
+        mesh = mesh.with_verts(mesh.verts * torch.tensor([1.4, 0.8, 0.7]) ** i)
+        cams = Cameras.orbit(60.0, 27.0, torch.tensor([30.0 * i, 30.0 * i + 135.0]), 39.6, size)
+        light = SGLight(torch.randn(1, 4, 3), torch.full((1, 4), 20.0), 3 * torch.rand(1, 4, 3))
+        mat = Material(albedo=torch.tensor([[0.6, 0.4, 0.3]]), roughness=0.2, specular=0.5)
+        images.append(Renderer("sg")(mesh.expand(2), cams, mat, light).image)
+        w2c.append(cams.world_to_camera.expand(2, 4, 4))
+    return dict(image=torch.stack(images), world_to_camera=torch.stack(w2c), fov=torch.full((items, 2), 0.691),
+                sample=torch.arange(items), partner=torch.arange(items))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("variant", ["", "vertex-features"])
+def test_a_training_step_on_cuda_matches_the_cpu(variant):
+    cfg = TrainConfig.from_dict(dict(image_size=32, batch_objects=2, lobes=4, compile=False, variant=variant))
+    torch.manual_seed(0)
+    cpu_model = make_model(cfg)
+    gpu_model = make_model(cfg)
+    gpu_model.load_state_dict(cpu_model.state_dict())
+    gpu_model.to("cuda")
+    batch = _rendered_batch()
+    results = []
+    for model, device in ((cpu_model, "cpu"), (gpu_model, "cuda")):
+        lap = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(device)
+        on_device = {k: v.to(device) if v.is_floating_point() else v for k, v in batch.items()}
+        total, _, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), on_device, cfg, lap)
+        total.backward()
+        results.append((total.item(), {n: p.grad.cpu() for n, p in model.named_parameters() if p.grad is not None}))
+    (cpu_total, cpu_grads), (gpu_total, gpu_grads) = results
+    assert gpu_total == pytest.approx(cpu_total, rel=1e-3)
+    assert cpu_grads.keys() == gpu_grads.keys()
+    for name, g in cpu_grads.items():  # float32 sums in another order: each gradient within 1 % of its size
+        assert (gpu_grads[name] - g).norm() <= 1e-2 * g.norm() + 1e-12, name
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message where there is no CUDA")
+def test_training_on_cuda_without_a_gpu_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(ValueError, match="no CUDA device"):
+        train(config(tmp_path / "no-data", tmp_path / "run", device="cuda"), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_training_views_keep_their_tensors_on_the_device_and_draw_the_same_batches(tiny_glossy):
+    data = TrainingData(tiny_glossy, 32)
+    moved = TrainingData(tiny_glossy, 32, device="meta")
+    assert moved.images.device.type == "meta" and moved.world_to_camera.device.type == "meta"
+    a, b = data.batch(3, 2, 0), moved.batch(3, 2, 0)
+    assert torch.equal(a["sample"], b["sample"]) and b["image"].device.type == "meta"
+
+
 @pytest.mark.slow  # torchrun starts two training processes: ~16 CPU-s
 def test_ddp_with_two_cpu_processes(tiny_glossy, tmp_path):
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
