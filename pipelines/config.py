@@ -275,7 +275,7 @@ VARIANTS: dict[str, Variant] = {
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
     "vertex-features": Variant("each vertex displaced along its normal by pixel-aligned image features (a U-Net's up "
                                "path) read where it projects: the shape read from the input's pixels",
-                               {"shape_detail": "features"}, runs=(("metallic", 0), ("glossy", 0))),
+                               {"shape_detail": "features"}, runs=(("metallic", 0),)),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"light_supervision": "map"}, kind="diagnostic"),

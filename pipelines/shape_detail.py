@@ -71,6 +71,9 @@ class PixelAlignedDetail(nn.Module):
         to_camera = F.normalize(cameras.centers.to(verts).unsqueeze(1) - verts, dim=-1)
         facing = (normals * to_camera).sum(-1, keepdim=True).clamp_min(0)
         grid = project_to_grid(verts, cameras)
+        # the encoder's features read, not trained, by the detail: its per-vertex gradients would reach the
+        # global code every other head reads (entry 20: through them even the supervised normals got worse)
+        levels, code = [x.detach() for x in levels], code.detach()
         seen = torch.cat([F.grid_sample(x, grid, align_corners=False, padding_mode="zeros")
                           for x in (self.features(levels), images)], 1).squeeze(-1).mT  # (B, V, C)
         seen = torch.cat([seen * (facing > 0), facing], -1)

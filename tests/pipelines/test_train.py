@@ -345,7 +345,10 @@ def _rendered_batch(items: int = 2, size: int = 32) -> dict:
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("variant", ["", "vertex-features"])
-def test_a_training_step_on_cuda_matches_the_cpu(variant):
+def test_a_training_step_on_cuda_matches_the_cpu(variant, monkeypatch):
+    # cuDNN's convolutions default to TF32 (10-bit mantissas): the encoder's gradients then differ by ~1 %
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
+    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)
     cfg = TrainConfig.from_dict(dict(image_size=32, batch_objects=2, lobes=4, compile=False, variant=variant))
     torch.manual_seed(0)
     cpu_model = make_model(cfg)
@@ -363,8 +366,8 @@ def test_a_training_step_on_cuda_matches_the_cpu(variant):
     (cpu_total, cpu_grads), (gpu_total, gpu_grads) = results
     assert gpu_total == pytest.approx(cpu_total, rel=1e-3)
     assert cpu_grads.keys() == gpu_grads.keys()
-    for name, g in cpu_grads.items():  # float32 sums in another order: each gradient within 1 % of its size
-        assert (gpu_grads[name] - g).norm() <= 1e-2 * g.norm() + 1e-12, name
+    for name, g in cpu_grads.items():  # float32 sums in another order: each gradient within 0.1 % of its size
+        assert (gpu_grads[name] - g).norm() <= 1e-3 * g.norm() + 1e-12, name
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message where there is no CUDA")
