@@ -38,6 +38,8 @@ class TrainConfig:
     lobes: int = _opt(32, "SG lobes of the predicted light", minimum=1)
     seed: int = _opt(0, "seed of the initial weights, the batches and the MC noise", minimum=0)
     iterations: int = _opt(1500, "training iterations", minimum=1)
+    train_objects: int = _opt(0, "train on the training split's first N objects only (their every env map and view): "
+                              "learning curves; 0 for all", minimum=0)
     batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
     lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
     lr_schedule: str = _opt("cosine-tail", "the learning rate over the run: constant for two thirds, then a cosine decay "
@@ -283,11 +285,15 @@ VARIANTS: dict[str, Variant] = {
                                       {"light_supervision": "probe"}, kind="diagnostic"),
     "shape-supervised": Variant("the predicted normals supervised by the GT mesh's in the input view: what one view can "
                                 "predict of the normals when told them",
-                                {"shape_supervision": True}, kind="diagnostic"),
+                                {"shape_supervision": True}, kind="diagnostic", runs=(("metallic", 0),)),
     "vertex-features-supervised": Variant("vertex-features with its normals supervised as in shape-supervised: what "
                                           "a shape read from the pixels can predict of the normals when told them",
                                           {"shape_detail": "features", "shape_supervision": True}, kind="diagnostic",
                                           runs=(("metallic", 0),)),
+    "shape-supervised-40-objects": Variant("shape-supervised on half the training objects (40 of 80): how the normals "
+                                           "one view predicts when told them depend on the number of objects",
+                                           {"shape_supervision": True, "train_objects": 40}, kind="diagnostic",
+                                           runs=(("metallic", 0),)),
     "oracle-roughness": Variant("renders use each object's GT roughness (the roughness/light-blur ambiguity)",
                                 {"oracle_roughness": True}, kind="diagnostic"),
 }

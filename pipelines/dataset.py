@@ -17,24 +17,31 @@ class TrainingViews:
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
     so resumes are exact. ``envmaps``, ``roughness`` and ``normals`` (the GT mesh's rendered in every view) load
     GT only for the diagnostics that read it. The tensors live on ``device``; the batches' indices are drawn on the
-    CPU, so a run draws the same batches on either."""
+    CPU, so a run draws the same batches on either. ``max_objects``: only the split's first objects (their every
+    sample), for learning curves; 0 for all."""
 
     def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False,
-                 normals: bool = False, device: str | torch.device = "cpu"):
+                 normals: bool = False, device: str | torch.device = "cpu", max_objects: int = 0):
         if ds.resolution != image_size:
             raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
                             f"{image_size}; pass --image-size {ds.resolution}")
-        n_samples, n_views = len(ds.samples), ds.num_views
+        objects = list(dict.fromkeys(obj for obj, _ in ds.samples))
+        if max_objects > len(objects):
+            raise DataError(f"{ds.root}: the split has {len(objects)} objects, fewer than the {max_objects} asked for; "
+                            f"pass --train-objects {len(objects)} or less (0: all)")
+        kept = set(objects[:max_objects] if max_objects else objects)
+        self.samples = [(obj, env) for obj, env in ds.samples if obj in kept]
+        n_samples, n_views = len(self.samples), ds.num_views
         imgs, w2c, fov = [], [], []
-        for obj, env in ds.samples:
+        for obj, env in self.samples:
             for v in range(n_views):
                 imgs.append(ds.view_image(obj, env, v))
                 m, f = ds.camera(obj, env, v)
                 w2c.append(m)
                 fov.append(f)
-        self.envmap_of_sample = torch.tensor([env for _, env in ds.samples])
-        self.object_of_sample = torch.tensor([obj for obj, _ in ds.samples])
-        self.roughness_of_sample = (torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in ds.samples])
+        self.envmap_of_sample = torch.tensor([env for _, env in self.samples])
+        self.object_of_sample = torch.tensor([obj for obj, _ in self.samples])
+        self.roughness_of_sample = (torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in self.samples])
                                     if roughness else None)
         self.envmaps = {env: ds.envmap(env) for env in set(self.envmap_of_sample.tolist())} if envmaps else None
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
@@ -56,7 +63,7 @@ class TrainingViews:
         renderer = Renderer("sg")
         with torch.no_grad():
             return torch.stack([renderer.render_normals(ds.mesh(obj).expand(self.num_views), Cameras(
-                self.world_to_camera[k], self.fov[k], self.resolution)).image for k, (obj, _) in enumerate(ds.samples)])
+                self.world_to_camera[k], self.fov[k], self.resolution)).image for k, (obj, _) in enumerate(self.samples)])
 
     def _partners(self, samples: torch.Tensor, key: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """The batch's second half redrawn as partners of the first: for item k, a sample sharing its ``key``

@@ -9,6 +9,7 @@ import torch
 
 from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
+from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
@@ -385,6 +386,17 @@ def test_training_views_keep_their_tensors_on_the_device_and_draw_the_same_batch
     assert torch.equal(a["sample"], b["sample"]) and b["image"].device.type == "meta"
 
 
+def test_training_on_the_first_objects_keeps_their_every_sample_and_refuses_more_than_the_split_has(tiny_glossy):
+    full = TrainingData(tiny_glossy, 32)
+    objects = list(dict.fromkeys(obj for obj, _ in full.samples))
+    half = TrainingData(tiny_glossy, 32, max_objects=2)
+    assert half.samples == [(obj, env) for obj, env in full.samples if obj in objects[:2]]
+    assert torch.equal(half.images, full.images[:len(half.samples)])  # the split lists an object's samples together
+    assert set(half.batch(0, 8, 0)["sample"].tolist()) <= set(range(len(half.samples)))
+    with pytest.raises(DataError, match="fewer than the 9 asked for"):
+        TrainingData(tiny_glossy, 32, max_objects=9)
+
+
 @pytest.mark.slow  # torchrun starts two training processes: ~16 CPU-s
 def test_ddp_with_two_cpu_processes(tiny_glossy, tmp_path):
     torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
@@ -500,7 +512,6 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
 def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes_as_it_was(tiny_glossy, tmp_path):
     """light_head 'auto' gives MC the probe head since 2026-11-25; an MC run whose config says 'auto' but whose
     checkpoint holds the global head (written before) is read as light_head 'global'."""
-    from dibrpp.io import DataError
     from pipelines.runs import load_config, load_run
     assert TrainConfig(shading="mc").resolved_light_head() == "probe"
     assert TrainConfig(shading="sh").resolved_light_head() == "global"
