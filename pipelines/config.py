@@ -293,7 +293,7 @@ VARIANTS: dict[str, Variant] = {
     "shape-supervised-40-objects": Variant("shape-supervised on half the training objects (40 of 80): how the normals "
                                            "one view predicts when told them depend on the number of objects",
                                            {"shape_supervision": True, "train_objects": 40}, kind="diagnostic",
-                                           runs=(("metallic", 0),)),
+                                           runs=(("metallic", 0), ("metallic", 1))),
     "oracle-roughness": Variant("renders use each object's GT roughness (the roughness/light-blur ambiguity)",
                                 {"oracle_roughness": True}, kind="diagnostic"),
 }
