@@ -2,14 +2,16 @@
 
 The encoder's global shape comes from one 512-d code: a smooth car whose normals miss the breaks (hood,
 windscreen) that the mirror directions depend on. :class:`PixelAlignedDetail` decodes the encoder's feature
-pyramid back to the input's resolution (a U-Net's up path: every pixel's features carry the whole image's
-context and its own neighbourhood; PIFu, Saito et al. ICCV 2019), looks each vertex of the global shape up
-where it projects in the input view (its mirror vertex too: cars are mirror-symmetric, and the other side of
+pyramid back up to half the input's resolution (a U-Net's up path: every pixel's features carry the whole
+image's context and its own neighbourhood; PIFu, Saito et al. ICCV 2019), looks each vertex of the global shape
+up where it projects in the input view (its mirror vertex too: cars are mirror-symmetric, and the other side of
 the car may face the camera when this one does not), and displaces it along its normal by a bounded amount.
 A displacement along the normal changes the surface, not where its vertices sit on it. The displacements are
-low-passed over the mesh (a few steps of averaging with the neighbours): read vertex by vertex they vary from
-one vertex to the next, and unsmoothed they made the surface bumpy and its normals worse, even when the
-normals were supervised (docs/experiments.md, entry 20). It starts at zero: the global shape.
+low-passed over the mesh (a few steps of averaging with the neighbours), and the detail reads the encoder's
+features without training them: trained through the detail, the encoder got worse even on its training views
+and even with the normals supervised; the low-pass alone did not mend that, the two together did
+(docs/experiments.md, entry 20). It starts at zero: the global shape. A variant that lost (entry 20), kept as the
+structure to measure at a larger compute budget.
 """
 from __future__ import annotations
 
@@ -72,7 +74,7 @@ class PixelAlignedDetail(nn.Module):
         facing = (normals * to_camera).sum(-1, keepdim=True).clamp_min(0)
         grid = project_to_grid(verts, cameras)
         # the encoder's features read, not trained, by the detail: its per-vertex gradients would reach the
-        # global code every other head reads (entry 20: through them even the supervised normals got worse)
+        # global code every other head reads (entry 20: through it even the supervised normals got worse)
         levels, code = [x.detach() for x in levels], code.detach()
         seen = torch.cat([F.grid_sample(x, grid, align_corners=False, padding_mode="zeros")
                           for x in (self.features(levels), images)], 1).squeeze(-1).mT  # (B, V, C)
