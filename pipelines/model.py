@@ -35,7 +35,7 @@ from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
 from dibrpp.sg import sg_integral
 
 from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
-from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_radiance
+from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
 from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
 
@@ -331,10 +331,9 @@ class Encoder(nn.Module):
         weights = self.texel_bary[None, :, :, None]
         pos = (verts[:, corners] * weights).sum(2)
         nrm = F.normalize((vertex_normals(verts, self.faces)[:, corners] * weights).sum(2), dim=-1, eps=1e-12)
-        xy, _ = cameras.project(pos)
         to_cam = F.normalize(cameras.centers.to(pos).unsqueeze(1) - pos, dim=-1)
         facing = (nrm * to_cam).sum(-1).clamp_min(0)
-        grid = torch.stack([xy[..., 0], -xy[..., 1]], -1).view(b, c.texture_height, c.texture_width, 2)
+        grid = input_grid(pos, cameras).view(b, c.texture_height, c.texture_width, 2)
         return TexelView(nrm, to_cam, facing, grid)
 
     def _projected(self, stem, images, texels: "TexelView") -> torch.Tensor:

@@ -10,11 +10,19 @@ from __future__ import annotations
 import torch
 
 from dibrpp import conventions
+from dibrpp.camera import Cameras
 
 MAX_LOG_RADIANCE = 12.0  # exp(12) ~ 1.6e5: a bound against overflow far above any sun in the data (input and light)
 # above radiance 1 the encoder's colour grows as 1 + ln(x) / HDR_LOG_SCALE (about the sRGB curve's slope at 1),
 # so a sun's reflection (~1e4) reads ~4.8 where a clipped picture shows 1
 HDR_LOG_SCALE = 2.4
+
+
+def input_grid(points: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """Where world points (B, P, 3) land in the cameras' input images, as ``grid_sample`` coordinates (B, P, 2)
+    (x right, y down in [-1, 1]; the cameras' NDC has y up)."""
+    xy, _ = cameras.project(points)
+    return torch.stack([xy[..., 0], -xy[..., 1]], -1)
 
 
 def encode_colour(radiance: torch.Tensor) -> torch.Tensor:

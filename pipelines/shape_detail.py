@@ -22,6 +22,8 @@ from torch import nn
 from dibrpp.camera import Cameras
 from dibrpp.mesh import vertex_normals
 
+from .model_input import input_grid
+
 MAX_DISPLACEMENT = 3.0  # world units (objects span [-18, 18])
 SMOOTHING_STEPS = 3  # each: a vertex's displacement halfway to its neighbours' mean
 CODE = 32  # channels of the global code each vertex also sees
@@ -29,12 +31,6 @@ CODE = 32  # channels of the global code each vertex also sees
 
 def _up_block(cin: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, 1, 1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2, inplace=True))
-
-
-def project_to_grid(points: torch.Tensor, cameras: Cameras) -> torch.Tensor:
-    """grid_sample coordinates (B, P, 1, 2) of world points (B, P, 3) in the cameras' images."""
-    xy, _ = cameras.project(points)
-    return torch.stack([xy[..., 0], -xy[..., 1]], -1).unsqueeze(2)
 
 
 class PixelAlignedDetail(nn.Module):
@@ -72,7 +68,7 @@ class PixelAlignedDetail(nn.Module):
         normals = vertex_normals(verts, faces)
         to_camera = F.normalize(cameras.centers.to(verts).unsqueeze(1) - verts, dim=-1)
         facing = (normals * to_camera).sum(-1, keepdim=True).clamp_min(0)
-        grid = project_to_grid(verts, cameras)
+        grid = input_grid(verts, cameras).unsqueeze(2)  # (B, V, 1, 2)
         # the encoder's features read, not trained, by the detail: its per-vertex gradients would reach the
         # global code every other head reads (entry 20: through it even the supervised normals got worse)
         levels, code = [x.detach() for x in levels], code.detach()
