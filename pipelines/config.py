@@ -87,8 +87,8 @@ class TrainConfig:
     shape_supervision: bool = _opt(False, "diagnostic: the predicted normals supervised by the GT mesh's in the "
                                    "input view (1 - cos, weight 1)")
     oracle_roughness: bool = _opt(False, "diagnostic: render with each object's GT roughness")
-    light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, or on the probe)",
-                                  ("", "map", "probe"))
+    light_supervision: str = _opt("", "diagnostic: light supervised by the GT map (on the map, on the probe, or the "
+                                  "probe head's sun on the map's dominant direction)", ("", "map", "probe", "sun"))
     w_albedo_consistency: float = _opt(0.0, "L1 between the albedos predicted from an object's two views",
                                        minimum=0.0)
     w_albedo_darker: float = _opt(0.0, "albedo pulled down to the darker of an object's two views", minimum=0.0)
@@ -141,6 +141,9 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
                               "sg or sh-sg and the probe light head")
+        if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
+            raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
+                              "or sh-sg and the probe light head")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self
@@ -283,6 +286,9 @@ VARIANTS: dict[str, Variant] = {
                                     {"light_supervision": "map"}, kind="diagnostic"),
     "light-supervised-probe": Variant("the light supervised by the GT map's rough-metal probe (the light metric)",
                                       {"light_supervision": "probe"}, kind="diagnostic"),
+    "sun-supervised": Variant("the probe head's sun distribution supervised by each sunny GT map's dominant direction: "
+                              "what one view's cue through the predicted surface can tell a head of the sun",
+                              {"light_supervision": "sun"}, kind="diagnostic", runs=(("metallic", 0),)),
     "shape-supervised": Variant("the predicted normals supervised by the GT mesh's in the input view: what one view can "
                                 "predict of the normals when told them",
                                 {"shape_supervision": True}, kind="diagnostic", runs=(("metallic", 0),)),

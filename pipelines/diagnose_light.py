@@ -82,6 +82,12 @@ def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
                    torch.cat([light.amplitude, (power / sg_integral(lam)).unsqueeze(1)], 1)).in_frame(frame)
 
 
+def probe_to_world(directions: torch.Tensor, world_to_camera: torch.Tensor) -> torch.Tensor:
+    """(B, 3) world-frame directions of (B, 3) directions given in each view's probe frame (world_to_camera (B, 4, 4))."""
+    world_to_probe = camera_to_probe(directions.device, directions.dtype) @ world_to_camera[:, :3, :3]
+    return (directions.unsqueeze(1) @ world_to_probe)[:, 0]  # one row per view (a (B, 3) @ (B, 3, 3) pairs them all)
+
+
 def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:
     """The probe head's SG light when its grid is read through the GT meshes instead of the predicted ones."""
     images = model.visible_input(images)
@@ -188,8 +194,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                     found[f"mirror cue, {surface} surface, {name} input"] = d
             if probe and LIGHT_KINDS[config.shading] == "sg":
                 p = pred.light_params
-                world_to_probe = camera_to_probe() @ cams.world_to_camera[:, :3, :3]
-                found["the run's sun lobe alone"] = p["axis"][:, -1] @ world_to_probe  # rows: probe -> world
+                found["the run's sun lobe alone"] = probe_to_world(p["axis"][:, -1], cams.world_to_camera)
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
                 sun = model.light_head.sun_lobes
                 shares.append((power[:, -sun:].sum(1) / power.sum(1))[sunny])

@@ -154,7 +154,8 @@ class ProbeLightHead(nn.Module):
 
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
-    starting at the mirror cue's brightest region) with its own sharpness and intensity. With ``sun="probe"``
+    starting at the mirror cue's brightest region, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and
+    intensity. With ``sun="probe"``
     the sun stays above the horizon and its power is at least what the cue shows near its axis
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries
     what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
@@ -265,7 +266,8 @@ class ProbeLightHead(nn.Module):
             if probe_to_world is None:
                 raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world)")
             logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
-        p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
+        log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
+        p = log_p.exp()
         sun_axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
         pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
         sun = self.sun(torch.cat([pooled, code], -1))
@@ -279,7 +281,7 @@ class ProbeLightHead(nn.Module):
         k, n = self.lobes - 1, len(suns)
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
                 "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
-                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1)}
+                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
 
     @property
     def sun_lobes(self) -> int:

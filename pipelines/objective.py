@@ -16,9 +16,17 @@ from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
+from .light_probe import camera_to_probe
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, supervised_light_loss, with_albedo_detail)
+                     hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, sun_supervision_loss, supervised_light_loss,
+                     with_albedo_detail)
 from .model_input import encoder_input
+
+
+# The sun supervision's negative log-likelihood is ~3 where the image terms are ~0.2: at weight 1 its gradient
+# through the global code (the head's FiLM) took over the encoder (metallic normals 8.7 -> 17 degrees). Adam
+# scales each parameter's step, so the head, which the term alone steers, still learns at a small weight.
+SUN_SUPERVISION_WEIGHT = 0.05
 
 
 @dataclass
@@ -83,7 +91,12 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
-    if config.light_supervision:
+    if config.light_supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
+        world_to_probe = camera_to_probe(target.device, target.dtype) @ views.world_to_camera[:, :3, :3]
+        terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"], world_to_probe,
+                                                          batch["envmap"], pred.config.env_height, pred.config.env_width)
+        weights["light_supervision"] = SUN_SUPERVISION_WEIGHT
+    elif config.light_supervision:
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
         weights["light_supervision"] = 1.0

@@ -9,8 +9,8 @@ from dibrpp.conventions import equirect_directions, equirect_solid_angles
 from dibrpp.lights import SGLight
 from dibrpp.mesh import Meshes, icosphere
 from dibrpp.sg import sg_integral
-from pipelines.diagnose_light import with_cue_sun
-from pipelines.light_probe import ProbeLightHead, cue_sun_power, mirror_directions, pixel_samples
+from pipelines.diagnose_light import probe_to_world, with_cue_sun
+from pipelines.light_probe import ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples
 
 
 def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
@@ -129,3 +129,12 @@ def test_sun_pixels_are_the_reflection_in_views_that_show_one_and_none_under_a_b
     found = consensus_directions(sun_pixel_sums(sphere, cams, images), torch.tensor([0, 0]))
     for d in found.values():  # through the true surface every view, and both together, mirror the sun
         assert float(angle_deg(d, sun.expand_as(d)).max()) < 3.0
+
+
+def test_each_views_sun_axis_is_turned_to_the_world_by_its_own_frame():
+    """diagnose_light's sun-lobe row: a sun axis in each view's probe frame back in the world frame, per view."""
+    cams = Cameras.orbit(60.0, 27.0, torch.tensor([0.0, 90.0, 200.0]), 30.0, 16)
+    sun = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, 0.8]), dim=0)
+    in_probe = (camera_to_probe() @ cams.world_to_camera[:, :3, :3] @ sun).squeeze(-1)
+    assert not torch.allclose(in_probe[0], in_probe[1])  # the views see it in different directions
+    torch.testing.assert_close(probe_to_world(in_probe, cams.world_to_camera), sun.expand(3, 3))

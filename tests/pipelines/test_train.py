@@ -13,8 +13,9 @@ from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
-from pipelines.losses import albedo_detail, darker_view_albedo_loss, normal_loss, roughness_floor, with_albedo_detail
-from pipelines.objective import multiview_losses
+from pipelines.losses import (SUN_TARGET_KAPPA, albedo_detail, darker_view_albedo_loss, normal_loss, roughness_floor,
+                              sun_direction_loss, with_albedo_detail)
+from pipelines.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
 
@@ -142,7 +143,9 @@ def _trained_by_one_term(tiny_glossy, batch: dict, term: str, **fields):
     model = make_model(cfg)
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, lap)
-    assert total.item() == pytest.approx(terms[term].item()) and total.item() > 0
+    weights = {"light_supervision": SUN_SUPERVISION_WEIGHT if fields.get("light_supervision") == "sun" else 1.0,
+               "shape_supervision": 1.0}
+    assert total.item() == pytest.approx(weights[term] * terms[term].item()) and total.item() > 0
     total.backward()
     return model, lap
 
@@ -162,8 +165,35 @@ def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(t
     light_grads = [p.grad for p in model.light_head.parameters() if p.grad is not None]
     assert any(g.abs().max() > 0 for g in light_grads) and (texture_grad is None or texture_grad.abs().max() == 0)
     with pytest.raises(ValueError, match="light_supervision"):
-        sun = config(tiny_glossy, "unused", lobes=4, light_supervision="sun")
-        multiview_losses(model, make_renderer(sun, 0), b, sun, lap)
+        sky = config(tiny_glossy, "unused", lobes=4, light_supervision="sky")
+        multiview_losses(model, make_renderer(sky, 0), b, sky, lap)
+
+
+def test_sun_direction_loss_is_least_where_the_distribution_sits_on_the_target():
+    cells = torch.nn.functional.normalize(torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]]), dim=-1)
+    target = torch.tensor([[1.0, 0, 0]])
+    at = lambda k: torch.log(torch.nn.functional.one_hot(torch.tensor([k]), 4).float().clamp_min(1e-30))  # noqa: E731
+    loss = lambda k, w=1.0: float(sun_direction_loss(at(k), cells, target, torch.tensor([w])))  # noqa: E731
+    assert loss(0) == pytest.approx(0.0, abs=1e-6)  # all the mass on the target's cell
+    assert loss(3) == pytest.approx(SUN_TARGET_KAPPA * (1 - 0.5 ** 0.5), rel=1e-5)  # 45 degrees off
+    assert loss(1) == pytest.approx(SUN_TARGET_KAPPA, rel=1e-5) and loss(1) > loss(3)
+    assert loss(1, w=0.0) == 0.0  # a view without a sun does not count
+    # it pulls a distribution stuck on a wrong peak towards the target
+    logits = torch.tensor([[0.0, 20.0, 0.0, 0.0]], requires_grad=True)
+    sun_direction_loss(torch.log_softmax(logits, -1), cells, target, torch.ones(1)).backward()
+    assert logits.grad[0, 0] < 0 and logits.grad[0, 1] > 0
+
+
+def test_sun_supervision_teaches_only_the_probe_heads_sun_and_needs_one(tiny_glossy):
+    """The diagnostic --light-supervision sun: the probe head's sun distribution against each sunny item's GT
+    dominant direction; with every other weight at 0, only the light head learns."""
+    b = TrainingData(str(tiny_glossy), 32, envmaps=True).batch(0, 2, seed=0)
+    model, _ = _trained_by_one_term(tiny_glossy, b, "light_supervision", light_supervision="sun", light_head="probe")
+    assert model.light_head.out.weight.grad.abs().max() > 0 and model.light_head.sun_temperature.grad.abs() > 0
+    assert model.shape_head.bias.grad is None or model.shape_head.bias.grad.abs().max() == 0
+    for wrong in ({"light_head": "global"}, {"shading": "mc"}):
+        with pytest.raises(ConfigError, match="light_supervision 'sun'"):
+            TrainConfig(light_supervision="sun", **wrong).validate()
 
 
 def test_normal_loss_is_one_minus_the_cosine_over_the_pixels_both_renders_cover():
