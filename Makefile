@@ -31,6 +31,7 @@ help:
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
+	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~6 min)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
@@ -80,6 +81,12 @@ HDRIS ?= $(shell $(PY) -c "from datagen.envmap_files import blender_hdris; print
 data-glossy-hdri: $(VENV)/.installed
 	@test -n "$(HDRIS)" || { echo "error: no HDRI folder; set HDRIS=DIR (a folder of .exr / .hdr maps)"; exit 1; }
 	$(PY) -m datagen --dataset glossy --envmaps $(HDRIS) --procedural-envmaps 16 --num-objects 60 --out $(DATA)/glossy-hdri
+
+# The metallic cars under skies only (seed 1: other cars, other maps): a test set for the metallic sun, whose
+# default test split holds 10 samples on two sunny maps. A run trained on data/metallic has seen none of it:
+# python -m pipelines.evaluate --runs runs/metallic --dataset data/metallic-sunny --split all --out results/eval-metallic-sunny
+data-metallic-sunny: $(VENV)/.installed
+	$(PY) -m datagen --dataset metallic --outdoor-share 1 --num-objects 30 --num-envmaps 30 --seed 1 --out $(DATA)/metallic-sunny
 
 # Resumable: rerunning skips finished samples and redoes partial ones.
 data-%: $(VENV)/.installed

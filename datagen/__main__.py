@@ -50,6 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "instead of the procedural maps")
     p.add_argument("--procedural-envmaps", type=non_negative_int, metavar="N",
                    help="with --envmaps: add N procedural maps to the files (default 0); each kind is split 4:1")
+    p.add_argument("--outdoor-share", type=float, metavar="F",
+                   help="share of the procedural env maps that are outdoor skies, the rest rooms (default 0.6; 1: "
+                        "skies only, e.g. a test set with many suns)")
     _preset_flags(p)
     p.add_argument("--denoise", action=argparse.BooleanOptionalAction, default=None,
                    help="denoise the shaded renders with OpenImageDenoise (albedo + normal guides); default: on for "
@@ -79,7 +82,7 @@ def main(argv=None) -> int:
                           spp=args.spp, seed=args.seed, texture_size=args.texture_size,
                           envmap_height=args.envmap_height, max_bounces=args.max_bounces,
                           grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
-                          denoise=args.denoise)
+                          denoise=args.denoise, outdoor_share=args.outdoor_share)
         shard = parse_shard(args.shard)
         stats = generate(cfg, args.out, workers=args.workers, shard=shard, recycle=args.recycle,
                          progress=not args.quiet, preview=not args.no_preview)

@@ -24,7 +24,8 @@ DATASET_DEFAULTS = {"diffuse": dict(spp=64, denoise=True)}
 _POSITIVE = ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "texture_size",
              "envmap_height", "grid")
 # Optional settings: left out of the manifest while unset, so older datasets keep matching their config.
-_OPTIONAL = ("envmaps_dir", "procedural_envmaps", "denoise")
+_OPTIONAL = ("envmaps_dir", "procedural_envmaps", "denoise", "outdoor_share")
+OUTDOOR_SHARE = 0.6  # the share of procedural env maps that are skies (the rest are rooms), unless set
 
 
 @dataclass
@@ -45,6 +46,7 @@ class Config:
     envmaps_dir: str | None = None  # a folder of your own HDRIs: maps 0..F-1
     procedural_envmaps: int | None = None  # with envmaps_dir: how many procedural maps follow the files
     denoise: bool | None = None  # OpenImageDenoise on the shaded renders (albedo + normal guides)
+    outdoor_share: float | None = None  # share of the procedural maps that are skies (None: OUTDOOR_SHARE)
 
     @property
     def num_file_envmaps(self) -> int:
@@ -64,6 +66,9 @@ class Config:
         self._validate_envs_per_object()
         if self.max_bounces < 0:
             raise ValueError("--max-bounces must be >= 0")
+        if self.outdoor_share is not None and not 0.0 <= float(self.outdoor_share) <= 1.0:
+            raise ValueError(f"--outdoor-share is the share of procedural maps that are skies, in [0, 1]; got "
+                             f"{self.outdoor_share}")
         if self.envmaps_dir and self.num_file_envmaps <= 0:
             raise ValueError(f"--envmaps {self.envmaps_dir}: no env map files counted")
 
@@ -90,7 +95,7 @@ def config_dict(cfg: Config) -> dict:
     """The config as the manifest stores it: optional settings only when set."""
     d = asdict(cfg)
     for k in _OPTIONAL:
-        if d.get(k) in (None, False):
+        if d.get(k) is None or d.get(k) is False:
             d.pop(k, None)
     return d
 

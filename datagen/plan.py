@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import Config
+from .config import OUTDOOR_SHARE, Config
 
 _DATASET_CODE = {"metallic": 1, "glossy": 2, "diffuse": 3}
 # The purposes a seed is drawn for (the second key of seed_for): changing one changes the data.
@@ -49,7 +49,8 @@ def _split_envmaps(cfg: Config, rng: np.random.Generator) -> tuple[list[int], li
 def _env_kind(cfg: Config, i: int) -> str:
     if i < cfg.num_file_envmaps:
         return "file"
-    return "outdoor" if np.random.default_rng(seed_for(cfg, ENV, i)).random() < 0.6 else "indoor"
+    share = OUTDOOR_SHARE if cfg.outdoor_share is None else float(cfg.outdoor_share)
+    return "outdoor" if np.random.default_rng(seed_for(cfg, ENV, i)).random() < share else "indoor"
 
 
 def material_for(cfg: Config, rng: np.random.Generator) -> dict:

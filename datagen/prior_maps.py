@@ -27,8 +27,9 @@ from tqdm import tqdm
 from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, positive_int
 from dibrpp.io import DataError, atomic_path
 
+from .config import OUTDOOR_SHARE  # as in the datasets
+
 CHUNK = 100
-OUTDOOR_SHARE = 0.6  # as in the datasets (datagen.plan)
 SEED_STREAM = 0x5E1F  # keeps these seeds apart from every dataset's
 MANIFEST = "manifest.json"
 SOURCES = ("envmaps.py", "textures.py")  # what the maps depend on, besides Blender

@@ -283,9 +283,11 @@ VARIANTS: dict[str, Variant] = {
                                {"shape_detail": "features"}, runs=(("metallic", 0),)),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
-                                    {"light_supervision": "map"}, kind="diagnostic"),
+                                    {"light_supervision": "map"}, kind="diagnostic",
+                                    runs=(("glossy", 0), ("metallic", 0))),
     "light-supervised-probe": Variant("the light supervised by the GT map's rough-metal probe (the light metric)",
-                                      {"light_supervision": "probe"}, kind="diagnostic"),
+                                      {"light_supervision": "probe"}, kind="diagnostic",
+                                      runs=(("glossy", 0), ("metallic", 0))),
     "sun-supervised": Variant("the probe head's sun distribution supervised by each sunny GT map's dominant direction: "
                               "what one view's cue through the predicted surface can tell a head of the sun",
                               {"light_supervision": "sun"}, kind="diagnostic", runs=(("metallic", 0),)),

@@ -21,6 +21,7 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -39,6 +40,8 @@ from .runs import checkpoint_digest, find_runs, load_config, load_run, make_rend
 from .tables import write_tables
 
 METRICS = ("image", "iou", "light", "texture", "chamfer")
+# what a result JSON holds; a cached result of an older format is evaluated again (2: the direction's intervals)
+RESULT_FORMAT = 2
 LIGHT_METRICS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
 
 
@@ -134,6 +137,12 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure
         v = per_view[k]
         result[k + "_views"] = [round(float(x), 2) for x in v[torch.isfinite(v)]]
+    # the sunny views' median and shares within 25 / 45 degrees, with 95 % intervals over the samples they come from
+    sunny = torch.isfinite(per_view["direction_deg"]).numpy()
+    sample_of_view = np.array([i // ds.num_views for i in views])[sunny]
+    summary = metrics.direction_summary(per_view["direction_deg"].numpy()[sunny], sample_of_view)
+    result.update({f"direction_{k}": v for k, v in summary.items() if k != "median"},
+                  direction_deg_ci=summary["median_ci"], samples_with_dominant_light=len(set(sample_of_view.tolist())))
     result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
@@ -202,18 +211,28 @@ def dataset_label(r: dict) -> str:
     return r["dataset"] if trained == r["dataset"] else f"{r['dataset']} (trained on {trained})"
 
 
+def share_with_interval(share: float | None, interval: list | None) -> str:
+    """'45 % (29–61)': a share and its 95 % interval in percent; '' where the run has none (no view with a dominant
+    light, or evaluated before the intervals were)."""
+    if share is None or interval is None or share != share:
+        return ""
+    return f"{100 * share:.0f} % ({100 * interval[0]:.0f}–{100 * interval[1]:.0f})"
+
+
 def write_table(results: list[dict], out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["dataset", "trained_on", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS,
-            "normal_deg"]
+            "direction_within_25", "normal_deg"]
     write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
     header = ["dataset", "method", "variant", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
-              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)", "normal (°)"]
+              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)",
+              "≤ 25° (95 % interval)", "normal (°)"]
     rows = [[dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
              *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS),
+             share_with_interval(r.get("direction_within_25"), r.get("direction_within_25_ci")),
              format_number(r.get("normal_deg"), ".3g")]
             for r in results]
-    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 1)) + "\n"
+    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 2)) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
 
@@ -236,7 +255,8 @@ def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
     r["evaluated"] = key
     path.parent.mkdir(parents=True, exist_ok=True)
     rows, _ = figures["examples"]
-    seen = "unseen objects and env maps" if args.split == "test" else "objects and env maps it was trained on"
+    trained_on_them = args.split == "train" and not args.dataset
+    seen = "objects and env maps it was trained on" if trained_on_them else "unseen objects and env maps"
     write_figure(rows, path.with_suffix(".png"), f"{r['dataset']} / {run.name}: {args.split} views ({seen})")
     rows, labels = figures["failures"]
     write_figure(rows, path.with_name(f"{path.stem}_failures.png"),
@@ -278,9 +298,10 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel for the re-renderings (default: 64)")
     ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
                     help="evaluate every n-th view of each test sample (default 3: 8 of the 24 views, every 45 degrees)")
-    ap.add_argument("--split", choices=("test", "train"), default="test",
-                    help="the views to evaluate on: test (unseen objects and maps) or train (the train/test gap; "
-                         "use another --out) (default: test)")
+    ap.add_argument("--split", choices=("test", "train", "all"), default="test",
+                    help="the views to evaluate on: test (unseen objects and maps), train (the train/test gap; "
+                         "use another --out) or all (every sample of a --dataset no run trained on, e.g. make "
+                         "data-metallic-sunny) (default: test)")
     ap.add_argument("--dataset", metavar="DIR",
                     help="evaluate every run on this dataset instead of the one it was trained on (e.g. the same "
                          "objects under other env maps; use another --out)")
@@ -288,6 +309,9 @@ def main(argv=None) -> int:
                     help="refine each prediction's light at test time with N Adam steps against its input view "
                          "(pipelines.refine; use another --out) (default: 0, off)")
     args = ap.parse_args(argv)
+    if args.split == "all" and not args.dataset:
+        ap.error("--split all evaluates every sample of another dataset (--dataset DIR): on a run's own dataset it "
+                 "would count the samples it trained on; use --split test")
     try:
         check_output_folder("--out", Path(args.out))
         if args.dataset:  # a missing or broken --dataset would fail every run: said once, now
@@ -308,9 +332,12 @@ def main(argv=None) -> int:
     for i, run in enumerate(runs, 1):
         try:
             config = load_config(run)
+            if args.split == "all" and Path(args.dataset).resolve() == Path(config.dataset).resolve():
+                raise DataError(f"--split all on {args.dataset}, the dataset it was trained on, would count its "
+                                "training samples; use --split test")
             path = paths[run]
             key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
-                       refine_steps=args.refine_steps,
+                       refine_steps=args.refine_steps, results=RESULT_FORMAT,
                        dataset=str(Path(args.dataset or config.dataset).resolve()))
             r = cached_result(path, key)
             if r is None:

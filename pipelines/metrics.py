@@ -235,3 +235,22 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
     nan = angle.new_tensor(float("nan"))
     return torch.stack([torch.stack([a[m].median() if m.any() else nan for m in (b, s)])
                         for a, b, s in zip(angle, both, at_sun)])
+
+
+def direction_summary(errors_deg: np.ndarray, samples: np.ndarray, resamples: int = 2000, seed: int = 0) -> dict:
+    """The dominant-light direction errors (degrees) of the test views with a dominant light, summarised with
+    95 % intervals: their median and the shares within 25 and 45 degrees. The views of one sample (an object under
+    one map) are not independent draws, and a test split holds few sunny maps, so the intervals resample whole
+    samples (a cluster bootstrap; ``samples`` gives each view's). {"median", "within_25", "within_45": value,
+    "..._ci": [low, high]}; NaN where there is no view."""
+    errors, samples = np.asarray(errors_deg, dtype=float), np.asarray(samples)
+    stats = {"median": np.median, "within_25": lambda e: float(np.mean(e <= 25)), "within_45": lambda e: float(np.mean(e <= 45))}
+    if not len(errors):
+        return {k: v for name in stats for k, v in ((name, math.nan), (name + "_ci", [math.nan, math.nan]))}
+    groups = [errors[samples == s] for s in np.unique(samples)]
+    draws = np.random.default_rng(seed).integers(0, len(groups), (resamples, len(groups)))
+    out = {}
+    for name, stat in stats.items():
+        boot = [stat(np.concatenate([groups[i] for i in d])) for d in draws]
+        out[name], out[name + "_ci"] = float(stat(errors)), [float(x) for x in np.percentile(boot, [2.5, 97.5])]
+    return out

@@ -186,6 +186,19 @@ def test_files_come_first_sorted_and_each_kind_is_split_4_to_1(tmp_path):
         "texture_size", "envmap_height", "grid", "max_bounces", "preset"}
 
 
+
+def test_outdoor_share_decides_how_many_procedural_maps_are_skies():
+    from datagen.config import config_dict, make_config
+    from datagen.plan import plan
+
+    kinds = lambda **kw: plan(make_config("metallic", num_envmaps=40, **kw))["env_kind"]  # noqa: E731
+    assert set(kinds(outdoor_share=1.0)) == {"outdoor"} and set(kinds(outdoor_share=0.0)) == {"indoor"}
+    assert kinds() == kinds(outdoor_share=0.6)  # the default share, as before the option
+    assert 0 < kinds().count("outdoor") < 40
+    assert config_dict(make_config("metallic", outdoor_share=1.0))["outdoor_share"] == 1.0
+    with pytest.raises(ValueError, match="outdoor-share"):
+        make_config("metallic", outdoor_share=1.5)
+
 # ----------------------------------------------------------------------------- a tiny dataset
 
 @pytest.mark.cycles

@@ -1,6 +1,8 @@
 """Evaluation of a (smoke) trained run on the real tiny dataset's test split."""
 import json
 
+import pytest
+
 from pipelines import evaluate, train
 
 
@@ -17,6 +19,10 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
         assert 0 <= r[k] <= 1, (k, r[k])
     assert r["image"] > 0 and 0 < r["chamfer"] < 1
     assert len(r["direction_deg_views"]) == len(r["direction_deg_constant_views"]) == r["views_with_dominant_light"]
+    if r["views_with_dominant_light"]:
+        lo, hi = r["direction_within_25_ci"]
+        assert 0 <= lo <= r["direction_within_25"] <= hi <= 1 and r["samples_with_dominant_light"] >= 1
+        assert f"{100 * r['direction_within_25']:.0f} % (" in (out / "all_runs.md").read_text()
     assert "| glossy | sh |" in (out / "all_runs.md").read_text()
     assert (out / "glossy" / "sh-seed0.png").stat().st_size > 1000 and (out / "tables.md").exists()
     assert (out / "glossy" / "sh-seed0_failures.png").stat().st_size > 1000
@@ -34,6 +40,15 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     assert o["dataset"] == "glossy-two-maps" and o["trained_on"] == "glossy" and r["trained_on"] == "glossy"
     assert o["test_views"] > 0 and o["image"] != r["image"]
     assert "| glossy-two-maps (trained on glossy) | sh |" in (tmp_path / "eval-other" / "all_runs.md").read_text()
+    # ... every sample of it (no run trained on it); refused on a run's own dataset, where it trained on some
+    assert evaluate.main(["--runs", str(runs), "--out", str(tmp_path / "eval-all"), "--dataset", str(tiny_glossy_two_maps),
+                          "--split", "all"]) == 0
+    a = json.loads((tmp_path / "eval-all" / "glossy-two-maps" / "sh-seed0.json").read_text())
+    assert a["split"] == "all" and a["test_views"] > o["test_views"]
+    with pytest.raises(SystemExit):
+        evaluate.main(["--runs", str(runs), "--out", str(tmp_path / "eval-all-own"), "--split", "all"])
+    assert evaluate.main(["--runs", str(runs), "--out", str(tmp_path / "eval-all-own"), "--split", "all",
+                          "--dataset", str(tiny_glossy)]) != 0
 
 
 def test_direction_figure_shows_default_seed0_runs_with_views_that_have_a_dominant_light(tmp_path):

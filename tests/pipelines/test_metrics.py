@@ -149,3 +149,23 @@ def test_normal_error_by_hand():
     pred[0, :2, :3] = gt[0, :2, :3]  # now 6 of the 12 shared pixels agree
     median, within = metrics.normal_error_deg(pred, torch.ones(2, 4, 4), gt, alpha_gt)
     assert within[0].item() == pytest.approx(0.5)
+
+
+def test_direction_summary_resamples_whole_samples():
+    """The 95 % intervals of the sunny views' median and shares resample samples (an object under a map), not views."""
+    direction_summary = metrics.direction_summary
+    # ten samples of eight views, each sample all right (10 degrees) or all wrong (60): half within 25
+    errors = np.repeat([10.0, 60.0] * 5, 8)
+    samples = np.repeat(np.arange(10), 8)
+    s = direction_summary(errors, samples)
+    assert s["within_25"] == 0.5 and s["within_45"] == 0.5 and s["median"] == 35.0
+    lo, hi = s["within_25_ci"]
+    assert 0.15 <= lo < 0.5 < hi <= 0.85  # ten draws: about +-0.3, where 80 independent views would give +-0.11
+    assert direction_summary(errors, samples) == s  # seeded
+    # the same errors as 80 samples of one view each: a narrower interval
+    lo80, hi80 = direction_summary(errors, np.arange(80))["within_25_ci"]
+    assert hi80 - lo80 < 0.6 * (hi - lo)
+    # every sample the same: no spread
+    assert direction_summary(np.full(16, 5.0), np.repeat([0, 1], 8))["within_25_ci"] == [1.0, 1.0]
+    empty = direction_summary(np.array([]), np.array([]))
+    assert math.isnan(empty["median"]) and math.isnan(empty["within_25_ci"][0])
