@@ -31,7 +31,7 @@ help:
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
-	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~6 min)"
+	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~4 min)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
