@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dibrpp.cli_args import Parser, non_negative_int, positive_int
+from dibrpp.cli_args import Parser, non_negative_int, positive_int, unit_fraction
 
 
 def preset_default(key: str) -> str:
@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "instead of the procedural maps")
     p.add_argument("--procedural-envmaps", type=non_negative_int, metavar="N",
                    help="with --envmaps: add N procedural maps to the files (default 0); each kind is split 4:1")
-    p.add_argument("--outdoor-share", type=float, metavar="F",
+    p.add_argument("--outdoor-share", type=unit_fraction, metavar="F",
                    help="share of the procedural env maps that are outdoor skies, the rest rooms (default 0.6; 1: "
                         "skies only, e.g. a test set with many suns)")
     _preset_flags(p)

@@ -71,6 +71,11 @@ def positive_float(text: str) -> float:
     return _checked(text, float, lambda v: v > 0, "a number > 0")
 
 
+def unit_fraction(text: str) -> float:
+    """A share: a number in [0, 1]."""
+    return _checked(text, float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
+
+
 def unit_rgb(text: str) -> tuple[float, float, float]:
     """R,G,B with each value in [0, 1]."""
     try:

@@ -265,8 +265,8 @@ class ProbeLightHead(nn.Module):
             if probe_to_world is None:
                 raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world)")
             logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
-        log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
-        p = log_p.exp()
+        p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
+        log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # (p.log() would underflow to -inf)
         sun_axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
         pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
         sun = self.sun(torch.cat([pooled, code], -1))

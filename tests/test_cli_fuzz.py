@@ -72,7 +72,7 @@ CLIS = [
     Cli("python -m datagen", "datagen.__main__:main", ["--dataset", "glossy", "--out", "{out}", "--quiet"],
         ("datagen.generate:_make_assets",), parser="datagen.__main__:build_parser",
         paths=dict(out="dir-out", envmaps="dir-in"), strings=("shard",),
-        zero_ok=("seed", "procedural_envmaps", "max_bounces")),
+        zero_ok=("seed", "procedural_envmaps", "max_bounces", "outdoor_share")),
     Cli("python -m datagen.prior_maps", "datagen.prior_maps:main", ["--out", "{out}", "--no-progress"],
         ("datagen.prior_maps:generate",), paths=dict(out="dir-out"), zero_ok=("seed",)),
     Cli("python -m pipelines.diagnose_light", "pipelines.diagnose_light:main", ["--run", "{run}"],
