@@ -54,7 +54,9 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
         pred = snap["pred"]
         # SH shading is Lambertian (DIB-R): roughness and specular do not enter it, by design
         material = [pred.roughness, pred.specular] if shading != "sh" else []
-        tensors = [pred.verts, pred.texture] + material + list(pred.light_params.values())
+        # the probe head's sun distribution (sun_log_p) is read only by the diagnostic sun supervision
+        light = [v for k, v in pred.light_params.items() if k != "sun_log_p"]
+        tensors = [pred.verts, pred.texture] + material + light
         for t in tensors:
             t.retain_grad()
         total.backward()
