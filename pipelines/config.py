@@ -274,7 +274,7 @@ VARIANTS: dict[str, Variant] = {
     "probe-sun": Variant("the probe head's sun above the horizon with at least the power the mirror cue shows near "
                          "its axis (the loss cannot switch it off), what the cue adds shading a held surface",
                          {"sun_lobe": "probe"},
-                         runs=(("metallic", 0), ("glossy", 0))),
+                         runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
