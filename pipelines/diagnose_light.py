@@ -41,7 +41,7 @@ from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
 
 from . import metrics
-from .light_probe import camera_to_probe, cue_sun_power, mirror_directions, pixel_samples, probe_grid, scatter_to_grid
+from .light_probe import cue_sun_power, mirror_directions, pixel_samples, probe_grid, scatter_to_grid, world_to_probe
 from .model import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
@@ -84,8 +84,8 @@ def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
 
 def probe_to_world(directions: torch.Tensor, world_to_camera: torch.Tensor) -> torch.Tensor:
     """(B, 3) world-frame directions of (B, 3) directions given in each view's probe frame (world_to_camera (B, 4, 4))."""
-    world_to_probe = camera_to_probe(directions.device, directions.dtype) @ world_to_camera[:, :3, :3]
-    return (directions.unsqueeze(1) @ world_to_probe)[:, 0]  # one row per view (a (B, 3) @ (B, 3, 3) pairs them all)
+    # one (1, 3) row per view: a (B, 3) @ (B, 3, 3) product would pair every view with every frame
+    return (directions.unsqueeze(1) @ world_to_probe(world_to_camera.to(directions)))[:, 0]
 
 
 def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dict:
@@ -96,8 +96,7 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
     grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, model.config.env_height,
                       model.config.env_width)
-    world_to_probe = camera_to_probe() @ cameras.world_to_camera[:, :3, :3]
-    light = model.light_head(grid, code, world_to_probe.mT)
+    light = model.light_head(grid, code, world_to_probe(cameras.world_to_camera).mT)
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 

@@ -45,6 +45,11 @@ def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
     return torch.tensor(CAMERA_TO_PROBE, device=device, dtype=dtype)
 
 
+def world_to_probe(world_to_camera: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) rotations from the world to each view's probe frame (world_to_camera (B, 4, 4) or (B, 3, 3))."""
+    return camera_to_probe(world_to_camera.device, world_to_camera.dtype) @ world_to_camera[:, :3, :3]
+
+
 def _blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of (B, C, H, W) grids: wrap-around in azimuth, clamped at the poles."""
     r = max(1, math.ceil(2 * sigma))
@@ -106,7 +111,7 @@ def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tenso
     """(B, 8, H, W) probe-frame grid: mirror-cue radiance (3) and coverage (1), diffuse-cue radiance (3) and
     coverage (1). normals, to_camera (B, N, 3) world-frame unit vectors of N surface points; seen (B, N, 3) the
     linear radiance the input shows there; weight (B, N) how much each point counts (0: not seen)."""
-    rot = camera_to_probe(normals.device, normals.dtype) @ world_to_camera[:, :3, :3].to(normals.dtype)  # world -> probe
+    rot = world_to_probe(world_to_camera.to(normals.dtype))
     mirror = mirror_directions(normals, to_camera)
     to_probe = lambda d: d @ rot.mT  # noqa: E731 (row vectors)
     mirror_mean, mirror_cover = scatter_to_grid(to_probe(mirror), seen, weight, height, width)

@@ -34,7 +34,7 @@ from dibrpp.lights import EnvMap, SGLight, SHLight
 from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
 from dibrpp.sg import sg_integral
 
-from .light_probe import ProbeLightHead, camera_to_probe, pixel_samples, probe_grid
+from .light_probe import ProbeLightHead, pixel_samples, probe_grid, world_to_probe
 from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
 from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
@@ -171,9 +171,7 @@ class Prediction:
         world-to-camera transform is ``world_to_camera`` ((B, 4, 4) or (B, 3, 3)) (the probe head: in that
         camera's probe frame, light_probe.CAMERA_TO_PROBE)."""
         p = self.light_params
-        frame = world_to_camera[:, :3, :3]
-        if self.config.light_head == "probe":
-            frame = camera_to_probe(frame.device, frame.dtype) @ frame
+        frame = world_to_probe(world_to_camera) if self.config.light_head == "probe" else world_to_camera[:, :3, :3]
         kind = LIGHT_KINDS[self.config.shading]
         if kind == "sg":
             light = SGLight(p["axis"], p["sharpness"], p["amplitude"])
@@ -361,8 +359,7 @@ class Encoder(nn.Module):
         world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)
         grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, self.config.env_height,
                           self.config.env_width)
-        world_to_probe = camera_to_probe(images.device, images.dtype) @ world_to_camera[:, :3, :3]
-        return self.light_head(grid, code, world_to_probe.mT)
+        return self.light_head(grid, code, world_to_probe(world_to_camera).mT)
 
     def visible_input(self, images: torch.Tensor) -> torch.Tensor:
         """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""

@@ -16,7 +16,7 @@ from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
 from .config import TrainConfig
-from .light_probe import camera_to_probe
+from .light_probe import world_to_probe
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
                      hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, sun_supervision_loss, supervised_light_loss,
                      with_albedo_detail)
@@ -92,8 +92,8 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
     if config.light_supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
-        world_to_probe = camera_to_probe(target.device, target.dtype) @ views.world_to_camera[:, :3, :3]
-        terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"], world_to_probe,
+        terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"],
+                                                          world_to_probe(views.world_to_camera.to(target)),
                                                           batch["envmap"], pred.config.env_height, pred.config.env_width)
         weights["light_supervision"] = SUN_SUPERVISION_WEIGHT
     elif config.light_supervision:
