@@ -71,10 +71,11 @@ class TrainConfig:
                             "(pipelines.light_prior; `make light-prior`); '' for none")
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
-    sun_lobe: str = _opt("learned", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
-                         "at least what the mirror cue shows near its axis above the sky's level, with its axis above "
-                         "the horizon, and what the cue adds not bending the surface it was read through (probe)",
-                         ("learned", "probe"))
+    sun_lobe: str = _opt("auto", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
+                         "with its axis above the horizon and, on metal, at least what the mirror cue shows near its "
+                         "axis above the sky's level, what the cue adds not bending the surface it was read through "
+                         "(probe); auto: probe for the probe head's SG light, learned otherwise",
+                         ("auto", "learned", "probe"))
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
@@ -181,19 +182,32 @@ class TrainConfig:
             return self.light_head
         return "global" if self.shading == "sh" else "probe"
 
+    def resolved_sun_lobe(self) -> str:
+        """The probe head's sun. 'auto': read off the mirror cue (probe) wherever there is a probe head's SG sun (the
+        default since 2026-11-26: on metal it places the sun better, on paint it is the learned sun above the
+        horizon), else learned (MC's env map, the global head, SH have no such lobe)."""
+        if self.sun_lobe != "auto":
+            return self.sun_lobe
+        return "probe" if self.shading in SG_LIGHT and self.resolved_light_head() == "probe" else "learned"
+
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
         non-default experiment fields, e.g. 'light_colour=free'). Tables hold default models only."""
         if self.variant:
             return self.variant
-        default = TrainConfig()
-        return ", ".join(f"{k}={getattr(self, k)}" for k in EXPERIMENT_FIELDS if getattr(self, k) != getattr(default, k))
+        mine, default = self.resolved_dict(), TrainConfig(shading=self.shading).resolved_dict()  # "auto" by shading
+        return ", ".join(f"{k}={mine[k]}" for k in EXPERIMENT_FIELDS if mine[k] != default[k])
+
+    def resolved_dict(self) -> dict:
+        """The fields with 'auto' choices resolved: what the run trains, whichever way it was written."""
+        return {**self.to_dict(), "light_head": self.resolved_light_head(), "sun_lobe": self.resolved_sun_lobe()}
 
 
 # What a run whose config.json was written before a field existed was trained with (the field's value then, not
 # today's default), so that an old run reads, is labelled and is resumed as what it was.
 VALUES_BEFORE_FIELD = {"light_head": "global", "probe_start": "colour", "probe_samples": "texels",
-                       "input_range": "clipped", "cross_view_light": "view", "lr_schedule": "constant"}
+                       "input_range": "clipped", "cross_view_light": "view", "lr_schedule": "constant",
+                       "sun_lobe": "learned"}
 
 PRESETS = {
     "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min
@@ -271,10 +285,10 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third (the "
                            "default until 2026-11-25)", {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    "probe-sun": Variant("the probe head's sun above the horizon with at least the power the mirror cue shows near "
-                         "its axis (the loss cannot switch it off), what the cue adds shading a held surface",
-                         {"sun_lobe": "probe"},
-                         runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0))),
+    "learned-sun": Variant("the probe head's sun lobe learned like the sky's (the image loss may switch it off, no "
+                           "horizon; the default until 2026-11-26)", {"sun_lobe": "learned"},
+                           runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
+                                 ("glossy", 2))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),

@@ -96,7 +96,7 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
     grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, model.config.env_height,
                       model.config.env_width)
-    light = model.light_head(grid, code, world_to_probe(cameras.world_to_camera).mT)
+    light = model.light_head(grid, code, world_to_probe(cameras.world_to_camera).mT, model.material_parameters(code)[2])
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 

@@ -160,9 +160,9 @@ class ProbeLightHead(nn.Module):
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and
-    intensity. With ``sun="probe"`` the sun stays above the horizon and its power is at least what the cue shows
-    near its axis (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis
-    carries what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
+    intensity. With ``sun="probe"`` the sun stays above the horizon and, on metal, its power is at least what the
+    cue shows near its axis (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the
+    sun's axis carries what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -242,9 +242,11 @@ class ProbeLightHead(nn.Module):
     def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
 
-    def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor | None = None) -> dict:
+    def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor | None = None,
+                metal: torch.Tensor | None = None) -> dict:
         """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
-        rotation from the probe frame to the world's (needed by the light prior, which lives in the world)."""
+        rotation from the probe frame to the world's (needed by the light prior, which lives in the world, and the
+        probe sun's horizon); metal (B,) how metallic each view's surface is predicted (needed by the probe sun)."""
         b = grid.shape[0]
         x = torch.cat([compress_radiance(grid), self.cell_dirs.expand(b, -1, -1, -1)], 1)
         h = F.leaky_relu(self._conv(self.inp, x), 0.2)
@@ -267,8 +269,9 @@ class ProbeLightHead(nn.Module):
         logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
         cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
         if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame
-            if probe_to_world is None:
-                raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world)")
+            if probe_to_world is None or metal is None:
+                raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world) and "
+                                 "how metallic the surface is (metal)")
             logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
         p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
         log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # (p.log() would underflow to -inf)
@@ -278,9 +281,11 @@ class ProbeLightHead(nn.Module):
         sun_sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
         sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
         suns = [sun_amplitude]
-        if self.sun_source == "probe":  # at least the cue's power near the axis
+        if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
             power = cue_sun_power(grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
-            floor = power / sg_integral(sun_sharpness.detach())
+            # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
+            # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
+            floor = metal.detach().view(-1, 1) * power / sg_integral(sun_sharpness.detach())
             suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
         k, n = self.lobes - 1, len(suns)
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),

@@ -345,7 +345,7 @@ class Encoder(nn.Module):
         return torch.cat([seen * (facing > 0), facing], 1)
 
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
-                     code: torch.Tensor) -> dict:
+                     code: torch.Tensor, metallic: torch.Tensor) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
@@ -359,7 +359,14 @@ class Encoder(nn.Module):
         world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)
         grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, self.config.env_height,
                           self.config.env_width)
-        return self.light_head(grid, code, world_to_probe(world_to_camera).mT)
+        return self.light_head(grid, code, world_to_probe(world_to_camera).mT, metallic)
+
+    def material_parameters(self, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(B,) roughness, specular and metallic (0 unless the model predicts it) from the global code."""
+        mat = self.material_head(code)
+        lo, hi = self.config.roughness_range
+        metallic = squash(mat[:, 2]) if self.config.predict_metallic else torch.zeros_like(mat[:, 2])
+        return squash(mat[:, 0], lo, hi), squash(mat[:, 1]), metallic
 
     def visible_input(self, images: torch.Tensor) -> torch.Tensor:
         """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""
@@ -383,14 +390,10 @@ class Encoder(nn.Module):
         needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
         texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
         texture, facing = self._texture(f, stem, images, texels)
-        mat = self.material_head(f)
-        lo, hi = c.roughness_range
-        roughness = squash(mat[:, 0], lo, hi)
-        specular = squash(mat[:, 1])
-        metallic = squash(mat[:, 2]) if c.predict_metallic else torch.zeros_like(mat[:, 2])
+        roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            light = self._probe_light(images, verts.detach(), texels, cameras, f)
+            light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic)
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":

@@ -144,7 +144,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     if detail < 1.0:
         shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
     light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
-    render = render_sun_on_held_surface if config.sun_lobe == "probe" else Renderer.__call__
+    render = render_sun_on_held_surface if config.resolved_sun_lobe() == "probe" else Renderer.__call__
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)

@@ -87,10 +87,10 @@ CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint
 
 def check_resumable(run: Path, config: TrainConfig) -> None:
     """Refuse to resume a run with other settings than it was trained with, naming them."""
-    saved = runs.load_config(run).to_dict()  # a field written before it existed reads as what the run had then
+    saved = runs.load_config(run).resolved_dict()  # a field written before it existed reads as what the run had then
     written = runs.read_json(Path(run) / runs.CONFIG, "run's configuration")
     known = set(written) | set(VALUES_BEFORE_FIELD)  # fields added since with today's default as their old value: skip
-    changed = [k for k, v in config.to_dict().items()
+    changed = [k for k, v in config.resolved_dict().items()
                if k not in CHANGEABLE_ON_RESUME and k in known and saved.get(k) != v]
     if changed:
         diff = ", ".join(f"{k}: {saved.get(k)!r} -> {getattr(config, k)!r}" for k in changed)

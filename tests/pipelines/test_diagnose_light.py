@@ -64,7 +64,7 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
         with torch.no_grad():
             head.sun.bias[1:] = -30.0  # a head that learnt to switch its sun off
     with torch.no_grad():
-        light = {s: head(grid, torch.zeros(1, 4), torch.eye(3)[None]) for s, head in heads.items()}
+        light = {s: head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1)) for s, head in heads.items()}
     up = light["probe"]["axis"][0, -1]
     assert up[2] > 0.5 and float(up @ dirs[3 * w + 8]) > 0.95
     assert light["learned"]["axis"][0, -1, 2] < -0.5  # the learned sun follows the brightest cell, glint or not
@@ -73,6 +73,11 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
     cue = cue_sun_power(grid, up[None], dirs, equirect_solid_angles(h, w).expand(-1, w).reshape(-1))[0]
     assert (power >= 0.999 * cue).all() and (cue > 0).all()
     assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
+    # on paint (not metal) the cue also shows diffuse shading: no floor, the sun stays above the horizon
+    with torch.no_grad():
+        paint = heads["probe"](grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
+    torch.testing.assert_close(paint["axis"], light["probe"]["axis"])
+    assert float(paint["amplitude"][0, -1].abs().max()) == 0.0
     with pytest.raises(ValueError, match="probe_to_world"):
         heads["probe"](grid, torch.zeros(1, 4))
 

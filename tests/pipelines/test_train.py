@@ -350,6 +350,33 @@ def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path
     check_resumable(tmp_path, TrainConfig(dataset="data/glossy", lr_schedule="constant", cross_view_light="view"))
 
 
+@pytest.mark.parametrize("shading, light_head, resolved", [("sg", "auto", "probe"), ("sh-sg", "probe", "probe"),
+                                                             ("sg", "global", "learned"), ("mc", "auto", "learned"),
+                                                             ("sh", "auto", "learned")])
+def test_the_sun_read_off_the_cue_is_the_default_wherever_there_is_a_probe_heads_sg_sun(
+        tmp_path, shading, light_head, resolved):
+    """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light and 'learned' elsewhere; a run
+    written before the field had the learned sun: a probe-head SG run is labelled so and refuses to resume under
+    today's default; the others (no probe head's sun either way) are today's and resume."""
+    from pipelines.runs import load_config
+    from pipelines.train import check_resumable
+
+    today = TrainConfig(dataset="data/glossy", shading=shading, light_head=light_head)
+    assert today.resolved_sun_lobe() == resolved and (today.label() == "") == (light_head != "global")
+    old = today.to_dict()
+    del old["sun_lobe"]
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    loaded = load_config(tmp_path)
+    assert loaded.resolved_sun_lobe() == "learned"
+    if resolved == "probe":
+        assert "sun_lobe=learned" in loaded.label()
+        with pytest.raises(Exception, match="sun_lobe: 'learned' -> 'auto'"):
+            check_resumable(tmp_path, today)
+    else:  # the same run as today's, labelled so
+        assert loaded.label() == today.label()
+        check_resumable(tmp_path, today)
+
+
 def test_cli_errors_are_clear(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pipelines.train", "--dataset", str(tmp_path / "nope"), "--out",
                         str(tmp_path / "o")], capture_output=True, text=True)
