@@ -76,6 +76,9 @@ class TrainConfig:
                          "axis above the sky's level, what the cue adds not bending the surface it was read through "
                          "(probe); auto: probe for the probe head's SG light, learned otherwise",
                          ("auto", "learned", "probe"))
+    sun_cue: str = _opt("all", "the pixels the probe head's SG sun is read off: all that the predicted surface covers, "
+                        "or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
+                        "direction straight behind the object)", ("all", "facing"))
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
@@ -142,6 +145,9 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
                               "sg or sh-sg and the probe light head")
+        if self.sun_cue != "all" and self.resolved_sun_lobe() != "probe":
+            raise ConfigError("sun_cue reads the probe head's SG sun off the mirror cue; use it with the probe sun "
+                              "(--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
@@ -289,6 +295,9 @@ VARIANTS: dict[str, Variant] = {
                            "horizon; the default until 2026-11-26)", {"sun_lobe": "learned"},
                            runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
                                  ("glossy", 2))),
+    "facing-sun": Variant("the SG sun read off the pixels that face the camera only (n.v >= 0.3), not the grazing ones "
+                          "at the silhouette, which mirror the direction behind the object", {"sun_cue": "facing"},
+                          runs=(("metallic", 0),)),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),

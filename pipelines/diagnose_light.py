@@ -41,7 +41,7 @@ from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
 
 from . import metrics
-from .light_probe import cue_sun_power, mirror_directions, pixel_samples, probe_grid, scatter_to_grid, world_to_probe
+from .light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
 from .model import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
@@ -94,9 +94,8 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     code = model.fc(model.backbone(model.stem(images)))
     radiance, alpha = input_radiance(images)
     samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
-    grid = probe_grid(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, model.config.env_height,
-                      model.config.env_width)
-    light = model.light_head(grid, code, world_to_probe(cameras.world_to_camera).mT, model.material_parameters(code)[2])
+    light = model.light_from_samples(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, code,
+                                     model.material_parameters(code)[2])
     return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
 
 

@@ -35,6 +35,9 @@ LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest ste
 BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
 # light_prior: how strongly the prior's components are held to their spread when fitted to the mirror cue
 PRIOR_STRENGTH = 0.1
+# sun_cue "facing": the sun is read off the pixels that face the camera at least this much (n.v); grazing ones, at the
+# silhouette, mirror the direction straight behind the object through the least sure normals
+FACING_MIN = 0.3
 # sun_lobe "probe": the cue's radiance within this angle of the sun's axis is the sun's (metrics.dominant_direction's
 # cone), and the horizon's softness (in sin elevation) below which the sun's prior falls off
 SUN_CONE_DEG = 20.0
@@ -117,6 +120,14 @@ def probe_grid(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tenso
     mirror_mean, mirror_cover = scatter_to_grid(to_probe(mirror), seen, weight, height, width)
     normal_mean, normal_cover = scatter_to_grid(to_probe(normals), seen, weight, height, width)
     return torch.cat([mirror_mean, mirror_cover, normal_mean, normal_cover], 1)
+
+
+def facing_mirror_cue(normals: torch.Tensor, to_camera: torch.Tensor, seen: torch.Tensor, weight: torch.Tensor,
+                      world_to_camera: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B, 4, H, W) the mirror cue (radiance, coverage) of :func:`probe_grid` from the points that face the camera
+    at least FACING_MIN (n.v) only."""
+    facing = (normals * to_camera).sum(-1) >= FACING_MIN
+    return probe_grid(normals, to_camera, seen, weight * facing, world_to_camera, height, width)[:, :4]
 
 
 def compress_radiance(grid: torch.Tensor) -> torch.Tensor:
@@ -243,10 +254,11 @@ class ProbeLightHead(nn.Module):
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
 
     def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor | None = None,
-                metal: torch.Tensor | None = None) -> dict:
+                metal: torch.Tensor | None = None, sun_grid: torch.Tensor | None = None) -> dict:
         """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
         rotation from the probe frame to the world's (needed by the light prior, which lives in the world, and the
-        probe sun's horizon); metal (B,) how metallic each view's surface is predicted (needed by the probe sun)."""
+        probe sun's horizon); metal (B,) how metallic each view's surface is predicted (needed by the probe sun);
+        sun_grid (B, 4, H, W) the mirror cue the sun is read off (default: ``grid``'s)."""
         b = grid.shape[0]
         x = torch.cat([compress_radiance(grid), self.cell_dirs.expand(b, -1, -1, -1)], 1)
         h = F.leaky_relu(self._conv(self.inp, x), 0.2)
@@ -265,7 +277,8 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(log_sky.clamp_max(self.max_log_radiance)).unsqueeze(-1).expand(-1, -1, 3)
         else:
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
-        luminance = grid[:, :3].mean(1, keepdim=True)
+        sun_grid = grid[:, :4] if sun_grid is None else sun_grid
+        luminance = sun_grid[:, :3].mean(1, keepdim=True)
         logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
         cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
         if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame
@@ -282,7 +295,7 @@ class ProbeLightHead(nn.Module):
         sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
         suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
-            power = cue_sun_power(grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
+            power = cue_sun_power(sun_grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
             # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
             # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
             floor = metal.detach().view(-1, 1) * power / sg_integral(sun_sharpness.detach())

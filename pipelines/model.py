@@ -34,7 +34,7 @@ from dibrpp.lights import EnvMap, SGLight, SHLight
 from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
 from dibrpp.sg import sg_integral
 
-from .light_probe import ProbeLightHead, pixel_samples, probe_grid, world_to_probe
+from .light_probe import ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
 from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
 from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
@@ -52,7 +52,8 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features")}
+           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features"),
+           "sun_cue": ("all", "facing")}
 
 
 @dataclass
@@ -90,6 +91,8 @@ class ModelConfig:
     # the probe head's SG sun: its power learned, or at least what the mirror cue shows near its axis, with the
     # axis above the horizon (ProbeLightHead)
     sun_lobe: str = "learned"
+    # the pixels the SG sun is read off: all that the surface covers, or those facing the camera (not grazing)
+    sun_cue: str = "all"
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
@@ -356,10 +359,18 @@ class Encoder(nn.Module):
             radiance = decode_premultiplied(seen[..., :3], seen[..., 3:])
             weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
             normals, to_camera = texels.normals, texels.to_camera
-        world_to_camera = cameras.world_to_camera.to(images).expand(b, 4, 4)
-        grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, self.config.env_height,
-                          self.config.env_width)
-        return self.light_head(grid, code, world_to_probe(world_to_camera).mT, metallic)
+        return self.light_from_samples(normals, to_camera, radiance, weight,
+                                       cameras.world_to_camera.to(images).expand(b, 4, 4), code, metallic)
+
+    def light_from_samples(self, normals: torch.Tensor, to_camera: torch.Tensor, radiance: torch.Tensor,
+                           weight: torch.Tensor, world_to_camera: torch.Tensor, code: torch.Tensor,
+                           metallic: torch.Tensor) -> dict:
+        """The probe head's light from surface samples (light_probe.probe_grid's arguments) and the global code."""
+        h, w = self.config.env_height, self.config.env_width
+        grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, h, w)
+        sun_grid = (facing_mirror_cue(normals, to_camera, radiance, weight, world_to_camera, h, w)
+                    if self.config.sun_cue == "facing" else None)
+        return self.light_head(grid, code, world_to_probe(world_to_camera).mT, metallic, sun_grid)
 
     def material_parameters(self, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(B,) roughness, specular and metallic (0 unless the model predicts it) from the global code."""

@@ -143,3 +143,29 @@ def test_each_views_sun_axis_is_turned_to_the_world_by_its_own_frame():
     in_probe = (camera_to_probe() @ cams.world_to_camera[:, :3, :3] @ sun).squeeze(-1)
     assert not torch.allclose(in_probe[0], in_probe[1])  # the views see it in different directions
     torch.testing.assert_close(probe_to_world(in_probe, cams.world_to_camera), sun.expand(3, 3))
+
+
+def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it():
+    """sun_cue "facing": on a sphere the pixels that graze the camera (n.v < 0.3) mirror the directions within ~35
+    degrees of straight behind it; the facing cue covers none of those, the full cue does; and the head's sun is
+    read off the cue it is given (its brightest cell), the sky lobes off the full grid."""
+    from pipelines.light_probe import FACING_MIN, facing_mirror_cue, probe_grid
+
+    sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 48)
+    rgba = torch.ones(1, 48, 48, 4)
+    normals, to_camera, seen, weight = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])
+    h, w = 16, 32
+    full = probe_grid(normals, to_camera, seen, weight, cams.world_to_camera, h, w)
+    facing = facing_mirror_cue(normals, to_camera, seen, weight, cams.world_to_camera, h, w)
+    behind = (equirect_directions(h, w).reshape(-1, 3) @ torch.tensor([1.0, 0.0, 0.0])) > math.cos(math.radians(15))
+    assert FACING_MIN == 0.3 and facing.shape == (1, 4, h, w)
+    assert float(full[0, 3].flatten()[behind].min()) > 0 and float(facing[0, 3].flatten()[behind].max()) == 0.0
+    torch.testing.assert_close(facing[0, 3].flatten()[~behind].gt(0).float().mean(), torch.tensor(1.0), atol=0.25, rtol=0)
+    grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
+    head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    with torch.no_grad():
+        own = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1))
+        told = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1), _probe_grid_with({(5, 20): 200.0}))
+    assert float(own["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95 and float(told["axis"][0, -1] @ dirs[5 * w + 20]) > 0.95
+    torch.testing.assert_close(told["amplitude"][:, :-2], own["amplitude"][:, :-2])

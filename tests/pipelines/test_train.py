@@ -566,6 +566,10 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
         with pytest.raises(ConfigError, match="sun_lobe 'probe'"):
             TrainConfig(sun_lobe="probe", **wrong).validate()
     TrainConfig(sun_lobe="probe", shading="sh-sg").validate()
+    TrainConfig(sun_cue="facing").validate()  # read off the facing pixels: only where there is a probe sun
+    for wrong in (dict(shading="mc"), dict(light_head="global"), dict(sun_lobe="learned")):
+        with pytest.raises(ConfigError, match="sun_cue"):
+            TrainConfig(sun_cue="facing", **wrong).validate()
 
 
 def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes_as_it_was(tiny_glossy, tmp_path):
