@@ -297,7 +297,7 @@ VARIANTS: dict[str, Variant] = {
                                  ("glossy", 2))),
     "facing-sun": Variant("the SG sun read off the pixels that face the camera only (n.v >= 0.3), not the grazing ones "
                           "at the silhouette, which mirror the direction behind the object", {"sun_cue": "facing"},
-                          runs=(("metallic", 0),)),
+                          runs=(("metallic", 0), ("metallic", 1))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
