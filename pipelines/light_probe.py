@@ -127,7 +127,8 @@ def facing_mirror_cue(normals: torch.Tensor, to_camera: torch.Tensor, seen: torc
     """(B, 4, H, W) the mirror cue (radiance, coverage) of :func:`probe_grid` from the points that face the camera
     at least FACING_MIN (n.v) only."""
     facing = (normals * to_camera).sum(-1) >= FACING_MIN
-    return probe_grid(normals, to_camera, seen, weight * facing, world_to_camera, height, width)[:, :4]
+    mirror = mirror_directions(normals, to_camera) @ world_to_probe(world_to_camera.to(normals.dtype)).mT
+    return torch.cat(scatter_to_grid(mirror, seen, weight * facing, height, width), 1)
 
 
 def compress_radiance(grid: torch.Tensor) -> torch.Tensor:
