@@ -404,7 +404,7 @@ def _rendered_batch(items: int = 2, size: int = 32) -> dict:
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-@pytest.mark.parametrize("variant", ["", "vertex-features"])
+@pytest.mark.parametrize("variant", ["", "vertex-features", "facing-sun"])
 def test_a_training_step_on_cuda_matches_the_cpu(variant, monkeypatch):
     # cuDNN's convolutions default to TF32 (10-bit mantissas): the encoder's gradients then differ by ~1 %
     monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
