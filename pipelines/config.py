@@ -76,9 +76,10 @@ class TrainConfig:
                          "axis above the sky's level, what the cue adds not bending the surface it was read through "
                          "(probe); auto: probe for the probe head's SG light, learned otherwise",
                          ("auto", "learned", "probe"))
-    sun_cue: str = _opt("all", "the pixels the probe head's SG sun is read off: all that the predicted surface covers, "
-                        "or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
-                        "direction straight behind the object)", ("all", "facing"))
+    sun_cue: str = _opt("auto", "the pixels the probe head's SG sun is read off: all that the predicted surface "
+                        "covers, or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
+                        "direction straight behind the object); auto: facing wherever there is a probe sun",
+                        ("auto", "all", "facing"))
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
@@ -145,7 +146,7 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
                               "sg or sh-sg and the probe light head")
-        if self.sun_cue != "all" and self.resolved_sun_lobe() != "probe":
+        if self.sun_cue == "facing" and self.resolved_sun_lobe() != "probe":
             raise ConfigError("sun_cue reads the probe head's SG sun off the mirror cue; use it with the probe sun "
                               "(--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
@@ -196,6 +197,14 @@ class TrainConfig:
             return self.sun_lobe
         return "probe" if self.shading in SG_LIGHT and self.resolved_light_head() == "probe" else "learned"
 
+    def resolved_sun_cue(self) -> str:
+        """The pixels the probe sun is read off. 'auto': those facing the camera wherever there is a probe sun (the
+        default since 2026-11-26, late: grazing pixels at the silhouette put the metallic sun behind the object on
+        some seeds), else all (no probe sun reads a cue)."""
+        if self.sun_cue != "auto":
+            return self.sun_cue
+        return "facing" if self.resolved_sun_lobe() == "probe" else "all"
+
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
         non-default experiment fields, e.g. 'light_colour=free'). Tables hold default models only."""
@@ -206,14 +215,15 @@ class TrainConfig:
 
     def resolved_dict(self) -> dict:
         """The fields with 'auto' choices resolved: what the run trains, whichever way it was written."""
-        return {**self.to_dict(), "light_head": self.resolved_light_head(), "sun_lobe": self.resolved_sun_lobe()}
+        return {**self.to_dict(), "light_head": self.resolved_light_head(), "sun_lobe": self.resolved_sun_lobe(),
+                "sun_cue": self.resolved_sun_cue()}
 
 
 # What a run whose config.json was written before a field existed was trained with (the field's value then, not
 # today's default), so that an old run reads, is labelled and is resumed as what it was.
 VALUES_BEFORE_FIELD = {"light_head": "global", "probe_start": "colour", "probe_samples": "texels",
                        "input_range": "clipped", "cross_view_light": "view", "lr_schedule": "constant",
-                       "sun_lobe": "learned"}
+                       "sun_lobe": "learned", "sun_cue": "all"}
 
 PRESETS = {
     "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min
@@ -295,9 +305,11 @@ VARIANTS: dict[str, Variant] = {
                            "horizon; the default until 2026-11-26)", {"sun_lobe": "learned"},
                            runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
                                  ("glossy", 2))),
-    "facing-sun": Variant("the SG sun read off the pixels that face the camera only (n.v >= 0.3), not the grazing ones "
-                          "at the silhouette, which mirror the direction behind the object", {"sun_cue": "facing"},
-                          runs=(("metallic", 0), ("metallic", 1))),
+    "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "
+                              "included (which mirror the direction behind the object; the default until 2026-11-26, "
+                              "late)", {"sun_cue": "all"},
+                              runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
+                                    ("glossy", 2))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),

@@ -350,27 +350,30 @@ def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path
     check_resumable(tmp_path, TrainConfig(dataset="data/glossy", lr_schedule="constant", cross_view_light="view"))
 
 
-@pytest.mark.parametrize("shading, light_head, resolved", [("sg", "auto", "probe"), ("sh-sg", "probe", "probe"),
-                                                             ("sg", "global", "learned"), ("mc", "auto", "learned"),
-                                                             ("sh", "auto", "learned")])
-def test_the_sun_read_off_the_cue_is_the_default_wherever_there_is_a_probe_heads_sg_sun(
-        tmp_path, shading, light_head, resolved):
-    """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light and 'learned' elsewhere; a run
-    written before the field had the learned sun: a probe-head SG run is labelled so and refuses to resume under
-    today's default; the others (no probe head's sun either way) are today's and resume."""
+@pytest.mark.parametrize("field, before, after", [("sun_lobe", "learned", "probe"), ("sun_cue", "all", "facing")])
+@pytest.mark.parametrize("shading, light_head, probe_sun", [("sg", "auto", True), ("sh-sg", "probe", True),
+                                                              ("sg", "global", False), ("mc", "auto", False),
+                                                              ("sh", "auto", False)])
+def test_the_probe_sun_and_its_facing_cue_are_the_default_wherever_there_is_a_probe_heads_sg_sun(
+        tmp_path, field, before, after, shading, light_head, probe_sun):
+    """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light and 'learned' elsewhere; sun_cue
+    'auto' (since 2026-11-26, late) is 'facing' wherever the sun is the probe's, else 'all'. A run written before
+    a field had its old value: a probe-head SG run is labelled so and refuses to resume under today's default;
+    the others (no probe sun either way) are today's and resume."""
     from pipelines.runs import load_config
     from pipelines.train import check_resumable
 
     today = TrainConfig(dataset="data/glossy", shading=shading, light_head=light_head)
-    assert today.resolved_sun_lobe() == resolved and (today.label() == "") == (light_head != "global")
+    assert today.resolved_dict()[field] == (after if probe_sun else before)
+    assert (today.label() == "") == (light_head != "global")
     old = today.to_dict()
-    del old["sun_lobe"]
+    del old[field]
     (tmp_path / "config.json").write_text(json.dumps(old))
     loaded = load_config(tmp_path)
-    assert loaded.resolved_sun_lobe() == "learned"
-    if resolved == "probe":
-        assert "sun_lobe=learned" in loaded.label()
-        with pytest.raises(Exception, match="sun_lobe: 'learned' -> 'auto'"):
+    assert loaded.resolved_dict()[field] == before
+    if probe_sun:
+        assert f"{field}={before}" in loaded.label()
+        with pytest.raises(Exception, match=f"{field}: '{before}' -> 'auto'"):
             check_resumable(tmp_path, today)
     else:  # the same run as today's, labelled so
         assert loaded.label() == today.label()
@@ -404,7 +407,7 @@ def _rendered_batch(items: int = 2, size: int = 32) -> dict:
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-@pytest.mark.parametrize("variant", ["", "vertex-features", "facing-sun"])
+@pytest.mark.parametrize("variant", ["", "vertex-features", "all-pixels-sun"])
 def test_a_training_step_on_cuda_matches_the_cpu(variant, monkeypatch):
     # cuDNN's convolutions default to TF32 (10-bit mantissas): the encoder's gradients then differ by ~1 %
     monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
