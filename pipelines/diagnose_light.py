@@ -4,7 +4,9 @@ On the test views with a dominant light, the direction error (median, share with
 sources below, over all those views and on each env map apart (its light's elevation: the test split holds few
 sunny maps, and how high the sun stands decides where a mirror-like car shows it):
 
-- the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power; for a
+- the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power, and (the
+  probe sun) that lobe without the learnt shift the head adds to the cue's place (as ``sun_axis`` "cue" has it;
+  entry 25); each with its elevation error (signed: below the GT sun where negative); for a
   run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
 - the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
@@ -82,6 +84,11 @@ def with_cue_sun(light: SGLight, meshes, cameras, radiance, alpha) -> SGLight:
                    torch.cat([light.amplitude, (power / sg_integral(lam)).unsqueeze(1)], 1)).in_frame(frame)
 
 
+def elevation_deg(directions: torch.Tensor) -> torch.Tensor:
+    """(B,) elevation above the world's horizon (degrees) of (B, 3) unit directions."""
+    return torch.rad2deg(torch.asin(directions[:, 2].clamp(-1, 1)))
+
+
 def probe_to_world(directions: torch.Tensor, world_to_camera: torch.Tensor) -> torch.Tensor:
     """(B, 3) world-frame directions of (B, 3) directions given in each view's probe frame (world_to_camera (B, 4, 4))."""
     # one (1, 3) row per view: a (B, 3) @ (B, 3, 3) product would pair every view with every frame
@@ -145,7 +152,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     probe = model.config.light_head == "probe"
     ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
-    errors, shares, probes, maps, elevations, normals = {}, [], {}, [], [], []
+    errors, lifts, shares, probes, maps, elevations, normals = {}, {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
     shapes, read_views = {}, []  # each object's predicted vertices, and what its normals are measured on again
     with torch.no_grad():
@@ -155,7 +162,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             d_gt, frac = metrics.dominant_direction(env)
             sunny = frac >= metrics.SUN_FRACTION
             maps.append(torch.as_tensor(b["envmap_index"])[sunny])
-            elevations.append(torch.rad2deg(torch.asin(d_gt[sunny, 2].clamp(-1, 1))))
+            elevations.append(elevation_deg(d_gt[sunny]))
             images = encoder_input(rgba)
             pred = model(images, cams)
             gt_meshes = [ds.mesh(o) for o in b["object"].tolist()]
@@ -193,6 +200,15 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             if probe and LIGHT_KINDS[config.shading] == "sg":
                 p = pred.light_params
                 found["the run's sun lobe alone"] = probe_to_world(p["axis"][:, -1], cams.world_to_camera)
+                head = model.light_head
+                if head.sun_source == "probe" and head.sun_axis == "head":  # the cue's place, the learnt shift off
+                    head.sun_axis = "cue"
+                    try:
+                        axis = model(images, cams).light_params["axis"][:, -1]
+                    finally:
+                        head.sun_axis = "head"
+                    found["the run's sun lobe without its learnt shift (as sun_axis 'cue')"] = probe_to_world(
+                        axis, cams.world_to_camera)
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
                 sun = model.light_head.sun_lobes
                 shares.append((power[:, -sun:].sum(1) / power.sum(1))[sunny])
@@ -201,6 +217,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 found["the run's head fed the cue through the GT mesh"] = d
             for k, d in found.items():
                 errors.setdefault(k, []).append(metrics.angle_deg(d, d_gt)[sunny])
+                lifts.setdefault(k, []).append((elevation_deg(d) - elevation_deg(d_gt))[sunny])
     _, sample = torch.cat(samples).unique(return_inverse=True)
     sun_dirs, sunny_all = torch.cat(suns), torch.cat(sunny_views)
     for surface, sums in sun_sums.items():  # the sun as one view places it, and as several do together
@@ -212,7 +229,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                                                     gt_meshes, cams, rgba, d_gt)[sunny]
                               for objs, cams, rgba, d_gt, sunny, gt_meshes in read_views])
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
-    errors = {k: torch.cat(v) for k, v in errors.items()}
+    errors, lifts = {k: torch.cat(v) for k, v in errors.items()}, {k: torch.cat(v) for k, v in lifts.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",
                    f"normals' error (°), the pixels whose GT mirror direction is within {metrics.SUN_PIXEL_DEG:.0f}° of the sun"]
     by_map = [[k] for k in errors] + [[k] for k in normal_rows]
@@ -228,15 +245,17 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     for k, v in errors.items():
         if not len(v):
             raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
-        rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %", f"{100 * (v <= 45).float().mean():.0f} %"])
+        lift = f"{lifts[k].median():+.1f}" if k in lifts else ""  # the consensus rows are not per view
+        rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
+                     f"{100 * (v <= 45).float().mean():.0f} %", lift])
     for name, v, mean in zip(normal_rows, normals.T, averaged.T):
         rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
-                     f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", ""])
+                     f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", "", ""])
     if shares:
-        rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", ""])
+        rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", "", ""])
     if probes:
         rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
-            f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", ""])
+            f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", "", ""])
     return rows, header, by_map
 
 
@@ -250,7 +269,8 @@ def main(argv=None) -> int:
         rows, by_map_header, by_map = diagnose(run_folder(Path(args.run)), args.view_stride)
     except DataError as e:
         ap.error(str(e))
-    print(markdown_table(["sunny test views", "direction median (°)", "≤ 25°", "≤ 45°"], rows))
+    print(markdown_table(["sunny test views", "direction median (°)", "≤ 25°", "≤ 45°",
+                          "elevation error (median, signed °)"], rows))
     print()
     print(markdown_table(by_map_header, by_map))
     return 0

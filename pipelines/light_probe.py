@@ -171,8 +171,8 @@ class ProbeLightHead(nn.Module):
 
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
-    starting at the mirror cue's brightest region, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and
-    intensity. With ``sun="probe"`` the sun stays above the horizon and, on metal, its power is at least what the
+    starting at the mirror cue's brightest region and shifted by a learnt residual, or with ``sun_axis="cue"`` the
+    cue's alone, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the sun stays above the horizon and, on metal, its power is at least what the
     cue shows near its axis (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the
     sun's axis carries what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
@@ -180,7 +180,7 @@ class ProbeLightHead(nn.Module):
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
                  max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
-                 prior_components: int = 0, sun: str = "learned"):
+                 prior_components: int = 0, sun: str = "learned", sun_axis: str = "head"):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -191,6 +191,10 @@ class ProbeLightHead(nn.Module):
         if sun not in ("learned", "probe"):
             raise ValueError(f"the sun lobe is 'learned' or read from the 'probe', not {sun!r}")
         self.sun_source = sun
+        if sun_axis not in ("head", "cue"):
+            raise ValueError(f"the sun's axis is placed by the 'head' (the cue plus a learnt shift) or the 'cue' alone, "
+                             f"not {sun_axis!r}")
+        self.sun_axis = sun_axis
         if prior_components and kind != "sg":
             raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
         self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
@@ -280,7 +284,10 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         luminance = sun_grid[:, :3].mean(1, keepdim=True)
-        logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + res[:, 3:]).flatten(1)
+        logits = self.sun_temperature * torch.log(luminance + LOG_EPS)
+        if self.sun_axis == "head":  # a learnt shift of the cue's; "cue": the sun stays where the geometry puts it
+            logits = logits + res[:, 3:]
+        logits = logits.flatten(1)
         cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
         if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame
             if probe_to_world is None or metal is None:

@@ -53,7 +53,7 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features"),
-           "sun_cue": ("all", "facing")}
+           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue")}
 
 
 @dataclass
@@ -93,6 +93,8 @@ class ModelConfig:
     sun_lobe: str = "learned"
     # the pixels the SG sun is read off: all that the surface covers, or those facing the camera (not grazing)
     sun_cue: str = "all"
+    # where the SG sun's axis is: the cue's soft arg-max shifted by a learnt residual (head), or the cue's alone
+    sun_axis: str = "head"
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
@@ -251,7 +253,8 @@ class Encoder(nn.Module):
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             start=c.probe_start, prior_components=c.light_prior, sun=c.sun_lobe)
+                                             start=c.probe_start, prior_components=c.light_prior, sun=c.sun_lobe,
+                                             sun_axis=c.sun_axis)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:

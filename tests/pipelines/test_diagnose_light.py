@@ -169,3 +169,25 @@ def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it
         told = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1), _probe_grid_with({(5, 20): 200.0}))
     assert float(own["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95 and float(told["axis"][0, -1] @ dirs[5 * w + 20]) > 0.95
     torch.testing.assert_close(told["amplitude"][:, :-2], own["amplitude"][:, :-2])
+
+
+def test_the_cues_sun_axis_ignores_the_learnt_shift_that_the_heads_follows():
+    """sun_axis "cue": the sun's distribution is the cue's (its brightest cell) whatever the head's last layer says;
+    "head" adds that layer's shift (here a large one toward another cell); the sky lobes are the same either way."""
+    h, w = 16, 32
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
+    suns = {}
+    for axis in ("head", "cue"):
+        head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis=axis)
+        shift = torch.zeros(1, 4, h, w)
+        shift[0, 3, 5, 20] = 60.0  # the last layer's output: a large shift of the sun's logits toward cell (5, 20)
+        conv = head._conv
+        head._conv = lambda layer, x, conv=conv, head=head: conv(layer, x) + (shift if layer is head.out else 0)
+        with torch.no_grad():
+            suns[axis] = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1))
+    assert float(suns["cue"]["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95
+    assert float(suns["head"]["axis"][0, -1] @ dirs[5 * w + 20]) > 0.95
+    torch.testing.assert_close(suns["cue"]["amplitude"][:, :-2], suns["head"]["amplitude"][:, :-2])
+    with pytest.raises(ValueError, match="sun's axis"):
+        ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis="learned")

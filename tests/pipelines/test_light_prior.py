@@ -101,6 +101,7 @@ def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, 
     status = diagnose_light.main(["--run", str(out), "--view-stride", "2"])
     text = capsys.readouterr()
     assert status == 0 and "the run's sun lobe alone" in text.out and "a sun read off the cue" in text.out, text.err
+    assert "without its learnt shift" in text.out and "elevation error" in text.out
     assert "° high" in text.out and "views of each test map" in text.out  # the by-map table
     assert "each object's shape averaged over its views" in text.out
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--light-prior", str(tmp_path / "maps"),
