@@ -318,7 +318,7 @@ VARIANTS: dict[str, Variant] = {
                                     ("glossy", 2))),
     "cue-sun-axis": Variant("the SG sun's axis the mirror cue's soft arg-max alone, no learnt shift: the learnt shift "
                             "put the metallic sun ~10 degrees too low", {"sun_axis": "cue"},
-                            runs=(("metallic", 0), ("metallic", 1))),
+                            runs=(("metallic", 0), ("metallic", 1), ("glossy", 0))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),
