@@ -172,9 +172,10 @@ class ProbeLightHead(nn.Module):
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region and shifted by a learnt residual, or with ``sun_axis="cue"`` the
-    cue's alone, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the sun stays above the horizon and, on metal, its power is at least what the
-    cue shows near its axis (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the
-    sun's axis carries what the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
+    cue's alone, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the
+    sun stays above the horizon and, on metal, its power is at least what the cue shows near its axis
+    (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
+    the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
