@@ -149,12 +149,10 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
                               "sg or sh-sg and the probe light head")
-        if self.sun_cue == "facing" and self.resolved_sun_lobe() != "probe":
-            raise ConfigError("sun_cue reads the probe head's SG sun off the mirror cue; use it with the probe sun "
-                              "(--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
-        if self.sun_axis == "cue" and self.resolved_sun_lobe() != "probe":
-            raise ConfigError("sun_axis 'cue' places the probe head's SG sun where the mirror cue is brightest; use it "
-                              "with the probe sun (--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
+        for name, value in (("sun_cue", "facing"), ("sun_axis", "cue")):  # choices that read the probe sun's cue
+            if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
+                raise ConfigError(f"{name} '{value}' reads the probe head's SG sun off the mirror cue; use it with the "
+                                  "probe sun (--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
