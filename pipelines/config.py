@@ -81,8 +81,9 @@ class TrainConfig:
                         "direction straight behind the object); auto: facing wherever there is a probe sun",
                         ("auto", "all", "facing"))
     sun_axis: str = _opt("head", "where the probe head's SG sun points: the mirror cue's brightest region shifted by "
-                         "a learnt residual (head), or the cue's alone (cue: the sun's place is the geometry's)",
-                         ("head", "cue"))
+                         "a learnt residual (head), the cue's alone (cue: the sun's place is the geometry's), or the "
+                         "shift scaled by 1 - the predicted metallic (cue-on-metal: a metal's cue is the light's "
+                         "picture, paint adds its diffuse shading)", ("head", "cue", "cue-on-metal"))
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
@@ -149,7 +150,8 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
                               "sg or sh-sg and the probe light head")
-        for name, value in (("sun_cue", "facing"), ("sun_axis", "cue")):  # choices that read the probe sun's cue
+        # the choices that read the probe sun's cue
+        for name, value in (("sun_cue", "facing"), ("sun_axis", "cue"), ("sun_axis", "cue-on-metal")):
             if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
                 raise ConfigError(f"{name} '{value}' reads the probe head's SG sun off the mirror cue; use it with the "
                                   "probe sun (--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
@@ -317,6 +319,10 @@ VARIANTS: dict[str, Variant] = {
     "cue-sun-axis": Variant("the SG sun's axis the mirror cue's soft arg-max alone, no learnt shift: the learnt shift "
                             "put the metallic sun ~10 degrees too low", {"sun_axis": "cue"},
                             runs=(("metallic", 0), ("metallic", 1), ("glossy", 0))),
+    "cue-sun-axis-on-metal": Variant("the SG sun's learnt shift scaled by 1 - the predicted metallic: the cue alone on "
+                                     "metal, the shift on paint (on glossy, which predicts no metallic, the default)",
+                                     {"sun_axis": "cue-on-metal"},
+                                     runs=(("metallic", 0), ("metallic", 1), ("metallic", 2))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),

@@ -201,12 +201,12 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
                 p = pred.light_params
                 found["the run's sun lobe alone"] = probe_to_world(p["axis"][:, -1], cams.world_to_camera)
                 head = model.light_head
-                if head.sun_source == "probe" and head.sun_axis == "head":  # the cue's place, the learnt shift off
-                    head.sun_axis = "cue"
+                if head.sun_source == "probe" and head.sun_axis != "cue":  # the cue's place, the learnt shift off
+                    own_axis, head.sun_axis = head.sun_axis, "cue"
                     try:
                         axis = model(images, cams).light_params["axis"][:, -1]
                     finally:
-                        head.sun_axis = "head"
+                        head.sun_axis = own_axis
                     found["the run's sun lobe without its learnt shift (as sun_axis 'cue')"] = probe_to_world(
                         axis, cams.world_to_camera)
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)

@@ -172,7 +172,8 @@ class ProbeLightHead(nn.Module):
     SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
     the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
     starting at the mirror cue's brightest region and shifted by a learnt residual, or with ``sun_axis="cue"`` the
-    cue's alone, returned as ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the
+    cue's alone, or with ``"cue-on-metal"`` the shift scaled by 1 - the predicted metallic, returned as
+    ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the
     sun stays above the horizon and, on metal, its power is at least what the cue shows near its axis
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
     the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
@@ -192,9 +193,9 @@ class ProbeLightHead(nn.Module):
         if sun not in ("learned", "probe"):
             raise ValueError(f"the sun lobe is 'learned' or read from the 'probe', not {sun!r}")
         self.sun_source = sun
-        if sun_axis not in ("head", "cue"):
-            raise ValueError(f"the sun's axis is placed by the 'head' (the cue plus a learnt shift) or the 'cue' alone, "
-                             f"not {sun_axis!r}")
+        if sun_axis not in ("head", "cue", "cue-on-metal"):
+            raise ValueError(f"the sun's axis is placed by the 'head' (the cue plus a learnt shift), the 'cue' alone, or "
+                             f"the 'cue-on-metal' (the shift scaled by 1 - metallic), not {sun_axis!r}")
         self.sun_axis = sun_axis
         if prior_components and kind != "sg":
             raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
@@ -286,8 +287,13 @@ class ProbeLightHead(nn.Module):
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         luminance = sun_grid[:, :3].mean(1, keepdim=True)
         logits = self.sun_temperature * torch.log(luminance + LOG_EPS)
-        if self.sun_axis == "head":  # a learnt shift of the cue's; "cue": the sun stays where the geometry puts it
-            logits = logits + res[:, 3:]
+        if self.sun_axis != "cue":  # a learnt shift of the cue's; "cue": the sun stays where the geometry puts it
+            shift = res[:, 3:]
+            if self.sun_axis == "cue-on-metal":  # a metal's cue is the light's picture; paint's adds its shading
+                if metal is None:
+                    raise ValueError("sun_axis 'cue-on-metal' needs how metallic the surface is (metal)")
+                shift = shift * (1 - metal.detach()).view(-1, 1, 1, 1)
+            logits = logits + shift
         logits = logits.flatten(1)
         cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
         if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame

@@ -53,7 +53,7 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features"),
-           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue")}
+           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue", "cue-on-metal")}
 
 
 @dataclass

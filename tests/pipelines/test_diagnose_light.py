@@ -191,3 +191,28 @@ def test_the_cues_sun_axis_ignores_the_learnt_shift_that_the_heads_follows():
     torch.testing.assert_close(suns["cue"]["amplitude"][:, :-2], suns["head"]["amplitude"][:, :-2])
     with pytest.raises(ValueError, match="sun's axis"):
         ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis="learned")
+
+
+def test_the_shift_on_paint_only_follows_the_cue_on_metal_and_is_the_heads_on_paint():
+    """sun_axis "cue-on-metal" scales the learnt shift by 1 - metallic: a metal's sun is the cue's, paint's (metallic
+    0, as every run on data without metals predicts) exactly the default "head"'s, and half-metal in between."""
+    h, w = 16, 32
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
+    shift = torch.zeros(1, 4, h, w)
+    shift[0, 3, 5, 20] = 60.0
+    out = {}
+    for axis, metal in (("head", 0.0), ("cue-on-metal", 0.0), ("cue-on-metal", 1.0), ("cue", 1.0)):
+        torch.manual_seed(0)  # the same weights for each head
+        head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis=axis)
+        conv = head._conv
+        head._conv = lambda layer, x, conv=conv, head=head: conv(layer, x) + (shift if layer is head.out else 0)
+        with torch.no_grad():
+            out[axis, metal] = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.tensor([metal]))
+    for key in out["head", 0.0]:  # bit for bit: a glossy run's model is the default's
+        assert torch.equal(out["cue-on-metal", 0.0][key], out["head", 0.0][key]), key
+    torch.testing.assert_close(out["cue-on-metal", 1.0]["sun_log_p"], out["cue", 1.0]["sun_log_p"])
+    assert float(out["cue-on-metal", 1.0]["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95
+    with pytest.raises(ValueError, match="metal"):
+        ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="learned", sun_axis="cue-on-metal")(
+            grid, torch.zeros(1, 4), torch.eye(3)[None])

@@ -573,9 +573,11 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     for wrong in (dict(shading="mc"), dict(light_head="global"), dict(sun_lobe="learned")):
         with pytest.raises(ConfigError, match="sun_cue"):
             TrainConfig(sun_cue="facing", **wrong).validate()
-        with pytest.raises(ConfigError, match="sun_axis 'cue'"):
-            TrainConfig(sun_axis="cue", **wrong).validate()
+        for axis in ("cue", "cue-on-metal"):
+            with pytest.raises(ConfigError, match=f"sun_axis '{axis}'"):
+                TrainConfig(sun_axis=axis, **wrong).validate()
     TrainConfig(sun_axis="cue").validate()
+    TrainConfig(sun_axis="cue-on-metal").validate()
 
 
 def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes_as_it_was(tiny_glossy, tmp_path):
