@@ -93,7 +93,8 @@ class ModelConfig:
     sun_lobe: str = "learned"
     # the pixels the SG sun is read off: all that the surface covers, or those facing the camera (not grazing)
     sun_cue: str = "all"
-    # where the SG sun's axis is: the cue's soft arg-max shifted by a learnt residual (head), or the cue's alone
+    # where the SG sun's axis is: the cue's soft arg-max shifted by a learnt residual (head), the cue's alone (cue),
+    # or the shift scaled by 1 - the predicted metallic (cue-on-metal)
     sun_axis: str = "head"
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
