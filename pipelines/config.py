@@ -80,10 +80,11 @@ class TrainConfig:
                         "covers, or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
                         "direction straight behind the object); auto: facing wherever there is a probe sun",
                         ("auto", "all", "facing"))
-    sun_axis: str = _opt("head", "where the probe head's SG sun points: the mirror cue's brightest region shifted by "
+    sun_axis: str = _opt("auto", "where the probe head's SG sun points: the mirror cue's brightest region shifted by "
                          "a learnt residual (head), the cue's alone (cue: the sun's place is the geometry's), or the "
                          "shift scaled by 1 - the predicted metallic (cue-on-metal: a metal's cue is the light's "
-                         "picture, paint adds its diffuse shading)", ("head", "cue", "cue-on-metal"))
+                         "picture, paint adds its diffuse shading); auto: cue-on-metal wherever there is a probe sun",
+                         ("auto", "head", "cue", "cue-on-metal"))
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
@@ -211,6 +212,14 @@ class TrainConfig:
             return self.sun_cue
         return "facing" if self.resolved_sun_lobe() == "probe" else "all"
 
+    def resolved_sun_axis(self) -> str:
+        """Where the probe sun points. 'auto': the learnt shift on paint only (cue-on-metal) wherever there is a probe
+        sun (the default since 2026-11-26, seventh session: on metal the shift put the sun ~10 degrees too low; on
+        paint, and so on every set without metals, it is the shift as before, bit for bit), else head (unused)."""
+        if self.sun_axis != "auto":
+            return self.sun_axis
+        return "cue-on-metal" if self.resolved_sun_lobe() == "probe" else "head"
+
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
         non-default experiment fields, e.g. 'light_colour=free'). Tables hold default models only."""
@@ -222,7 +231,7 @@ class TrainConfig:
     def resolved_dict(self) -> dict:
         """The fields with 'auto' choices resolved: what the run trains, whichever way it was written."""
         return {**self.to_dict(), "light_head": self.resolved_light_head(), "sun_lobe": self.resolved_sun_lobe(),
-                "sun_cue": self.resolved_sun_cue()}
+                "sun_cue": self.resolved_sun_cue(), "sun_axis": self.resolved_sun_axis()}
 
 
 # What a run whose config.json was written before a field existed was trained with (the field's value then, not
@@ -319,10 +328,10 @@ VARIANTS: dict[str, Variant] = {
     "cue-sun-axis": Variant("the SG sun's axis the mirror cue's soft arg-max alone, no learnt shift: the learnt shift "
                             "put the metallic sun ~10 degrees too low", {"sun_axis": "cue"},
                             runs=(("metallic", 0), ("metallic", 1), ("glossy", 0))),
-    "cue-sun-axis-on-metal": Variant("the SG sun's learnt shift scaled by 1 - the predicted metallic: the cue alone on "
-                                     "metal, the shift on paint (on glossy, which predicts no metallic, the default)",
-                                     {"sun_axis": "cue-on-metal"},
-                                     runs=(("metallic", 0), ("metallic", 1), ("metallic", 2))),
+    "shifted-sun-axis": Variant("the SG sun's axis shifted by the head's learnt residual on metal too (the default "
+                                "until 2026-11-26, seventh session; on glossy, which predicts no metallic, the default "
+                                "bit for bit)", {"sun_axis": "head"},
+                                runs=(("metallic", 0), ("metallic", 1), ("metallic", 2))),
     "roughness-anneal": Variant("the renders' roughness at least 0.7 at the start, lowered to none by two thirds of "
                                 "the run: blurred reflections before sharp ones, for the normals",
                                 {"roughness_anneal": 0.7}, runs=(("metallic", 0), ("glossy", 0))),

@@ -350,14 +350,16 @@ def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path
     check_resumable(tmp_path, TrainConfig(dataset="data/glossy", lr_schedule="constant", cross_view_light="view"))
 
 
-@pytest.mark.parametrize("field, before, after", [("sun_lobe", "learned", "probe"), ("sun_cue", "all", "facing")])
+@pytest.mark.parametrize("field, before, after", [("sun_lobe", "learned", "probe"), ("sun_cue", "all", "facing"),
+                                                  ("sun_axis", "head", "cue-on-metal")])
 @pytest.mark.parametrize("shading, light_head, probe_sun", [("sg", "auto", True), ("sh-sg", "probe", True),
                                                               ("sg", "global", False), ("mc", "auto", False),
                                                               ("sh", "auto", False)])
 def test_the_probe_sun_and_its_facing_cue_are_the_default_wherever_there_is_a_probe_heads_sg_sun(
         tmp_path, field, before, after, shading, light_head, probe_sun):
     """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light and 'learned' elsewhere; sun_cue
-    'auto' (since 2026-11-26, late) is 'facing' wherever the sun is the probe's, else 'all'. A run written before
+    'auto' (since 2026-11-26, late) is 'facing' wherever the sun is the probe's, else 'all'; sun_axis 'auto' (since
+    2026-11-26, seventh session) is 'cue-on-metal' wherever the sun is the probe's, else 'head'. A run written before
     a field had its old value: a probe-head SG run is labelled so and refuses to resume under today's default;
     the others (no probe sun either way) are today's and resume."""
     from pipelines.runs import load_config
