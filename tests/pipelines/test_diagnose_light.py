@@ -195,7 +195,7 @@ def test_the_cues_sun_axis_ignores_the_learnt_shift_that_the_heads_follows():
 
 def test_the_shift_on_paint_only_follows_the_cue_on_metal_and_is_the_heads_on_paint():
     """sun_axis "cue-on-metal" scales the learnt shift by 1 - metallic: a metal's sun is the cue's, paint's (metallic
-    0, as every run on data without metals predicts) exactly the default "head"'s, and half-metal in between."""
+    0, as every run on data without metals predicts) bit for bit the former default "head"'s."""
     h, w = 16, 32
     dirs = equirect_directions(h, w).reshape(-1, 3)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
