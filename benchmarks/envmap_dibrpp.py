@@ -38,8 +38,10 @@ class DibrppBackend:
         return conv.equirect_directions(self.task.env_height, self.task.env_width)
 
     def render(self, env: torch.Tensor, spp: int, seed: int | None = None, grad_seed: int | None = None) -> torch.Tensor:
-        renderer = Renderer(MCShader(spp=spp, mis=True, seed=seed, compile=True, grad_seed=grad_seed,
-                                     native=self.task.dibrpp_native), raster_settings=SHADING_ONLY)
+        # torch.compile of the MC path takes minutes on CUDA (its first iteration did not end in 110 s): eager there
+        shader = MCShader(spp=spp, mis=True, seed=seed, compile=self.device.type == "cpu", grad_seed=grad_seed,
+                          native=self.task.dibrpp_native)
+        renderer = Renderer(shader, raster_settings=SHADING_ONLY)
         if self.gbuffer is None:  # only the light is optimised: rasterize once, as Mitsuba builds its BVH once
             with torch.no_grad():
                 self.gbuffer = renderer.gbuffer(self.mesh, self.cameras, self.material)

@@ -73,6 +73,13 @@ class Run:
     def task(self, task: Task) -> Task:
         return replace(task, spp=task.spp * self.spp_factor, dibrpp_native=self.native)
 
+    def title(self, device: str) -> str:
+        """The column's name: dibrpp's C++ kernel shades on the CPU only, on CUDA every dibrpp column is PyTorch."""
+        if device == "cpu" or self.renderer != "dibrpp":
+            return self.label
+        eager = f"PyTorch on {device}"
+        return self.label.replace("C++ kernel", eager).replace("PyTorch (before)", eager)
+
 
 RUNS = {
     "dibrpp": Run("dibrpp", "dibrpp (C++ kernel)"),
@@ -237,10 +244,10 @@ def write_tables(rows: dict, task: Task, agreement: float | None, out: Path) -> 
         f"{task.env_width}x{task.env_height} env map, references at {task.ref_spp} spp; dibrpp on {task.device}, "
         f"Mitsuba {task.variant}; {task.threads} CPU thread(s).",
         "",
-        markdown_table(["", *(RUNS[r].label for r in runs), "paper DIB-R++", "paper Mitsuba 2"], body,
+        markdown_table(["", *(RUNS[r].title(task.device) for r in runs), "paper DIB-R++", "paper Mitsuba 2"], body,
                        "l" + "r" * (len(runs) + 2)),
         "",
-        "- Status: " + "; ".join(f"{RUNS[r].label} {rows[r]['status']}" for r in runs) + ".",
+        "- Status: " + "; ".join(f"{RUNS[r].title(task.device)} {rows[r]['status']}" for r in runs) + ".",
         f"- Samples: dibrpp shades each pixel centre with spp directions (half GGX, half env-map, MIS); Mitsuba "
         f"traces spp camera rays per pixel, each with one emitter and one BSDF sample (2 x spp directions), so "
         f"dibrpp at {2 * task.spp} spp takes as many directions as Mitsuba at {task.spp}. dibrpp's gradient: "
@@ -259,15 +266,15 @@ def write_tables(rows: dict, task: Task, agreement: float | None, out: Path) -> 
     return text
 
 
-def write_figure(arrays: dict, rows: dict, out: Path) -> None:
+def write_figure(arrays: dict, rows: dict, out: Path, device: str = "cpu") -> None:
     plt = pyplot()
     show = lambda x: conv.linear_to_srgb(torch.from_numpy(np.asarray(x, np.float32))).numpy()  # noqa: E731
     err = lambda run: f" (rel. L2 {format_number(rows.get(run, {}).get('env_rel_l2_final'), '.3f')})"  # noqa: E731
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
     panels = [("GT env map (white line: edge of the visible half)", arrays["gt"]),
-              (RUNS["dibrpp"].label + err("dibrpp"), arrays.get("dibrpp_env")),
-              (RUNS["mitsuba"].label + err("mitsuba"), arrays.get("mitsuba_env")),
-              (RUNS["dibrpp-2x"].label + err("dibrpp-2x"), arrays.get("dibrpp-2x_env")),
+              (RUNS["dibrpp"].title(device) + err("dibrpp"), arrays.get("dibrpp_env")),
+              (RUNS["mitsuba"].title(device) + err("mitsuba"), arrays.get("mitsuba_env")),
+              (RUNS["dibrpp-2x"].title(device) + err("dibrpp-2x"), arrays.get("dibrpp-2x_env")),
               ("dibrpp reference", arrays.get("dibrpp_ref"))]
     visible = visible_weight(conv.equirect_directions(*arrays["gt"].shape[:2])) > 0
     for i, (ax, (title, img)) in enumerate(zip(axes.flat, panels)):
@@ -281,7 +288,8 @@ def write_figure(arrays: dict, rows: dict, out: Path) -> None:
     for run in rows:
         if f"{run}_losses" in arrays:
             same = run == "dibrpp-pytorch"  # the kernel's samples: its curve lies on the kernel's
-            line = ax.semilogy(arrays[f"{run}_losses"], label=RUNS[run].label + (" (on the kernel's)" if same else ""),
+            label = RUNS[run].title(device) + (" (on the kernel's)" if same else "")
+            line = ax.semilogy(arrays[f"{run}_losses"], label=label,
                                linewidth=0.8, linestyle=":" if same else "-")[0]
             ax.axhline(rows[run]["loss_at_gt"], color=line.get_color(), linestyle="--", linewidth=0.8)
     ax.set_xlabel("iteration")
@@ -302,7 +310,8 @@ def run_all(runs: list[str], task: Task) -> tuple[dict, dict]:
                 print(install_hint(missing))
                 rows[run] = {"run": run, "renderer": "mitsuba", "status": "skipped: missing " + " and ".join(missing)}
                 continue
-            print(f"{RUNS[run].label}: reference at {task.ref_spp} spp, then {task.iterations} iterations ...", flush=True)
+            print(f"{RUNS[run].title(task.device)}: reference at {task.ref_spp} spp, then {task.iterations} iterations ...",
+                  flush=True)
             rows[run] = run_renderer(run, scratch)
         for f in scratch.glob("*.npy"):
             arrays[f.stem] = np.load(f)
@@ -365,7 +374,7 @@ def main(argv=None) -> int:
     both = {"dibrpp_ref", "mitsuba_ref"} <= arrays.keys()
     agreement = clipped_psnr(arrays["dibrpp_ref"], arrays["mitsuba_ref"]) if both else None
     print(write_tables(rows, task, agreement, out))
-    write_figure(arrays, rows, out)
+    write_figure(arrays, rows, out, task.device)
     print(f"wrote {out / 'mitsuba.md'}, {out / 'mitsuba.csv'}, {out / 'mitsuba.png'}")
     return 0 if rows["dibrpp"]["status"] == "ok" else 1
 

@@ -59,3 +59,13 @@ def test_mitsuba_envmap_texels_sit_at_blender_directions():
     values = np.array(backend.scene.environment().eval(si)).T.reshape(data.shape)
     # the pole rows are a single point each: compare the rows in between
     np.testing.assert_allclose(values[1:-1], data[1:-1], rtol=1e-4)
+
+
+def test_columns_are_named_for_the_device_they_ran_on():
+    # dibrpp's C++ kernel shades on the CPU only: on CUDA its columns run PyTorch and must not claim the kernel
+    runs = bench_mitsuba.RUNS
+    assert runs["dibrpp"].title("cpu") == "dibrpp (C++ kernel)"
+    assert runs["dibrpp"].title("cuda") == "dibrpp (PyTorch on cuda)"
+    assert runs["dibrpp-2x"].title("cuda") == "dibrpp, 2x spp (PyTorch on cuda)"
+    assert runs["dibrpp-pytorch"].title("cuda") == "dibrpp, PyTorch on cuda"
+    assert runs["mitsuba"].title("cuda") == runs["mitsuba"].title("cpu") == "Mitsuba 3 (prb)"
