@@ -148,14 +148,15 @@ class TrainConfig:
         if self.light_prior and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_prior shapes the probe head's SG sky; use it with --shading sg or sh-sg and the "
                               "probe light head")
-        if self.sun_lobe == "probe" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
-            raise ConfigError("sun_lobe 'probe' reads the probe head's SG sun off the mirror cue; use it with --shading "
-                              "sg or sh-sg and the probe light head")
+        if self.sun_lobe == "probe" and (self.shading == "sh" or self.resolved_light_head() != "probe"):
+            raise ConfigError("sun_lobe 'probe' reads the probe head's sun off the mirror cue; use it with --shading "
+                              "sg, sh-sg or mc and the probe light head")
         # the choices that read the probe sun's cue
         for name, value in (("sun_cue", "facing"), ("sun_axis", "cue"), ("sun_axis", "cue-on-metal")):
             if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
-                raise ConfigError(f"{name} '{value}' reads the probe head's SG sun off the mirror cue; use it with the "
-                                  "probe sun (--sun-lobe probe or auto, --shading sg or sh-sg, the probe light head)")
+                raise ConfigError(f"{name} '{value}' reads the probe head's sun off the mirror cue; use it with the "
+                                  "probe sun (--sun-lobe probe, or auto with --shading sg or sh-sg; the probe light "
+                                  "head)")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")

@@ -166,6 +166,27 @@ def sample_grid(grid: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(grid, xy.to(grid), align_corners=False, padding_mode="border")[:, :, 0].permute(0, 2, 1)
 
 
+def splat_power(axis: torch.Tensor, power: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """(B, 3, H, W) radiance of an equirect grid holding a compact source's ``power`` (B, 3) at unit ``axis``
+    (B, 3): the power shared bilinearly among the four cells whose centres surround the axis (wrap-around in
+    azimuth, clamped at the poles), each share divided by its cell's solid angle, so that the grid's integral is
+    ``power`` and moves smoothly with the axis. A source smaller than a cell, such as the sun on MC's grid."""
+    if power.shape != axis.shape:
+        raise ValueError(f"splat_power takes (B, 3) axes and powers, got {tuple(axis.shape)} and {tuple(power.shape)}")
+    uv = conventions.direction_to_equirect_uv(axis)
+    x, y = uv[:, 0] * width - 0.5, uv[:, 1] * height - 0.5
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = x - x0, y - y0
+    cols = [x0.long() % width, (x0.long() + 1) % width]
+    rows = [y0.long().clamp(0, height - 1), (y0.long() + 1).clamp(0, height - 1)]
+    share = torch.zeros(axis.shape[0], height * width, device=axis.device, dtype=power.dtype)
+    for r, wy in zip(rows, (1 - fy, fy)):
+        for c, wx in zip(cols, (1 - fx, fx)):
+            share = share.scatter_add(1, (r * width + c).unsqueeze(1), (wy * wx).unsqueeze(1).to(power.dtype))
+    solid = conventions.equirect_solid_angles(height, width, axis.device, power.dtype).expand(-1, width).flatten()
+    return (power.unsqueeze(-1) * (share / solid).unsqueeze(1)).view(-1, 3, height, width)
+
+
 class ProbeLightHead(nn.Module):
     """Light from the probe grid and the global code: an env grid (MC) or SG lobes, in the probe frame.
 
@@ -176,7 +197,9 @@ class ProbeLightHead(nn.Module):
     ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the
     sun stays above the horizon and, on metal, its power is at least what the cue shows near its axis
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
-    the cue adds to the head's own sun (the training shades it on a held surface). With a light prior
+    the cue adds to the head's own sun (the training shades it on a held surface). MC (``kind="env"``) with
+    ``sun="probe"``: the grid that starts as the mirror cue, plus the same sun (its axis and power as SG's, no
+    floor) with its power in the cells about its axis (:func:`splat_power`). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -217,6 +240,7 @@ class ProbeLightHead(nn.Module):
         if kind == "sg":
             self.register_buffer("axes", fibonacci_axes(lobes - 1))
             self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
+        if kind == "sg" or sun == "probe":  # the sun: SG's lobe, or (env) its power on the grid
             self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
             self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
             nn.init.zeros_(self.sun.weight)
@@ -276,7 +300,16 @@ class ProbeLightHead(nn.Module):
         cue = grid[:, :3] if self.start == "colour" else grid[:, :3].mean(1, keepdim=True)
         log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
         if self.kind == "env":
-            return {"image": torch.exp(log_map.clamp_max(self.max_log_radiance)).permute(0, 2, 3, 1)}
+            sky = torch.exp(log_map.clamp_max(self.max_log_radiance))
+            if self.sun_source != "probe":
+                return {"image": sky.permute(0, 2, 3, 1)}
+            solid = self.cell_log_solid_angle.exp().view(1, 1, -1)
+            mean_sky = (sky.flatten(2) * solid).sum(-1) / (4 * math.pi)  # (B, 3)
+            sun_axis, log_p, sun = self._sun(grid, sun_grid, res, h, code, probe_to_world, metal)
+            sharpness, amplitude = self._sun_lobe(sun, mean_sky)
+            power = sg_integral(sharpness[:, 0], amplitude)  # (B, 3) the SG sun's power, on the grid as one source
+            image = sky + splat_power(sun_axis, power, self.height, self.width)
+            return {"image": image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1), "sun_log_p": log_p}
         if self.prior_components:
             if probe_to_world is None:
                 raise ValueError("the light prior needs the probe frame's rotation to the world (probe_to_world)")
@@ -284,6 +317,26 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(log_sky.clamp_max(self.max_log_radiance)).unsqueeze(-1).expand(-1, -1, 3)
         else:
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
+        sun_axis, log_p, sun = self._sun(grid, sun_grid, res, h, code, probe_to_world, metal)
+        sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
+        suns = [sun_amplitude]
+        if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
+            sun_grid = grid[:, :4] if sun_grid is None else sun_grid
+            cells = self.cell_dirs.flatten(2)[0].T
+            power = cue_sun_power(sun_grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
+            # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
+            # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
+            floor = metal.detach().view(-1, 1) * power / sg_integral(sun_sharpness.detach())
+            suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
+        k, n = self.lobes - 1, len(suns)
+        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
+                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
+                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
+
+    def _sun(self, grid: torch.Tensor, sun_grid: torch.Tensor | None, res: torch.Tensor, h: torch.Tensor,
+             code: torch.Tensor, probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:
+        """The sun's axis (B, 3), its distribution over cells as log-probabilities (B, H*W) and the sun's raw
+        parameters (B, 4: log sharpness, log rgb intensity relative to the sky) from the features where it is."""
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         luminance = sun_grid[:, :3].mean(1, keepdim=True)
         logits = self.sun_temperature * torch.log(luminance + LOG_EPS)
@@ -305,20 +358,12 @@ class ProbeLightHead(nn.Module):
         log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # (p.log() would underflow to -inf)
         sun_axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
         pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
-        sun = self.sun(torch.cat([pooled, code], -1))
-        sun_sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
-        sun_amplitude = torch.exp((sun[:, 1:] + amplitude.mean(1).log()).clamp_max(self.max_log_radiance))
-        suns = [sun_amplitude]
-        if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
-            power = cue_sun_power(sun_grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
-            # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
-            # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
-            floor = metal.detach().view(-1, 1) * power / sg_integral(sun_sharpness.detach())
-            suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
-        k, n = self.lobes - 1, len(suns)
-        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
-                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
-                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
+        return sun_axis, log_p, self.sun(torch.cat([pooled, code], -1))
+
+    def _sun_lobe(self, sun: torch.Tensor, sky: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 1) sharpness and (B, 3) amplitude of the sun lobe from its raw parameters and the sky's mean (B, 3)."""
+        sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness)
+        return sharpness, torch.exp((sun[:, 1:] + sky.log()).clamp_max(self.max_log_radiance))
 
     @property
     def sun_lobes(self) -> int:

@@ -15,7 +15,7 @@ from dibrpp.mesh import laplacian_smoothness
 from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
-from .config import TrainConfig
+from .config import SG_LIGHT, TrainConfig
 from .light_probe import world_to_probe
 from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
                      hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, sun_supervision_loss, supervised_light_loss,
@@ -144,7 +144,9 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     if detail < 1.0:
         shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
     light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
-    render = render_sun_on_held_surface if config.resolved_sun_lobe() == "probe" else Renderer.__call__
+    # the SG sun's floor lobe shades a held surface; MC's probe sun has no floor (its light is one grid)
+    held_sun = config.resolved_sun_lobe() == "probe" and config.shading in SG_LIGHT
+    render = render_sun_on_held_surface if held_sun else Renderer.__call__
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)

@@ -10,7 +10,8 @@ from dibrpp.lights import SGLight
 from dibrpp.mesh import Meshes, icosphere
 from dibrpp.sg import sg_integral
 from pipelines.diagnose_light import probe_to_world, with_cue_sun
-from pipelines.light_probe import ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples
+from pipelines.light_probe import (ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples,
+                                  splat_power)
 
 
 def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
@@ -216,3 +217,51 @@ def test_the_shift_on_paint_only_follows_the_cue_on_metal_and_is_the_heads_on_pa
     with pytest.raises(ValueError, match="metal"):
         ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="learned", sun_axis="cue-on-metal")(
             grid, torch.zeros(1, 4), torch.eye(3)[None])
+
+
+def test_a_splatted_source_keeps_its_power_and_moves_smoothly_with_its_axis():
+    """splat_power (MC's sun on the grid): the grid integrates to the power wherever the axis is (poles, the
+    azimuth seam), the cell holding most of it is the one nearest the axis, and the axis gets a gradient."""
+    h, w = 16, 32
+    solid = equirect_solid_angles(h, w).view(1, 1, h, 1)
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    axes = torch.nn.functional.normalize(torch.tensor(
+        [[0.3, 0.2, 0.9], [0.0, 0.0, 1.0], [-1.0, 1e-4, 0.1], [0.5, -0.5, -0.7]]), dim=-1)
+    power = torch.tensor([[2.0, 1.0, 0.5]]).expand(4, 3)
+    grid = splat_power(axes, power, h, w)
+    torch.testing.assert_close((grid * solid).sum((2, 3)), power)
+    nearest = (axes @ dirs.T).argmax(-1)
+    assert torch.equal((grid * solid).mean(1).flatten(1)[[0, 2, 3]].argmax(-1), nearest[[0, 2, 3]])
+    axis = axes[:1].clone().requires_grad_(True)
+    (splat_power(axis, power[:1], h, w) * torch.randn(1, 3, h, w)).sum().backward()
+    assert axis.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="axes and powers"):
+        splat_power(axes, power[:, None], h, w)
+
+
+def test_mcs_probe_sun_is_the_sg_suns_power_on_the_cue_grid():
+    """kind "env" with sun "probe": the grid that starts at the cue plus the sun's power where the sun's distribution
+    puts it (the cue's brightest facing cell above the horizon), the same axis as the SG head's; "learned" has no sun."""
+    h, w = 16, 32
+    solid = equirect_solid_angles(h, w).view(1, 1, h, 1)
+    grid = torch.cat([_probe_grid_with({(3, 8): 200.0, (12, 20): 400.0}), torch.zeros(1, 4, h, w)], 1)  # one below
+    torch.manual_seed(0)
+    plain = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="learned")
+    torch.manual_seed(0)
+    head = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
+    torch.manual_seed(0)
+    sg = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
+    args = (grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
+    with torch.no_grad():
+        sky, out, lobes = plain(*args)["image"], head(*args), sg(*args)
+    sun = (out["image"] - sky).permute(0, 3, 1, 2)
+    torch.testing.assert_close(out["sun_log_p"], lobes["sun_log_p"])
+    # the SG head's own sun lobe, its amplitude relative to the mean of the env grid instead of the sky lobes'
+    mean_sky = (sky.permute(0, 3, 1, 2) * solid).sum((2, 3)) / (4 * math.pi)
+    amplitude = lobes["amplitude"][:, -2] * mean_sky / lobes["amplitude"][:, :-2].mean(1)
+    power = sg_integral(lobes["sharpness"][:, -2], amplitude)
+    torch.testing.assert_close((sun * solid).sum((2, 3)), power, rtol=1e-4, atol=0)
+    dirs = equirect_directions(h, w).reshape(-1, 3)
+    assert int((sun * solid).mean(1).flatten().argmax()) == int((dirs @ lobes["axis"][0, -1]).argmax())
+    assert float(lobes["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95  # above the horizon, not the brighter cell below
+    assert "sun_log_p" not in plain(*args)

@@ -575,10 +575,11 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
         held.rgb.sum().backward()
         moved = verts.grad is not None and verts.grad.abs().sum() > 0
         assert moved == (sky > 0), sky
-    for wrong in (dict(shading="mc"), dict(light_head="global")):  # no SG sun of the probe head to read
+    for wrong in (dict(shading="sh", light_head="global"), dict(light_head="global")):  # no probe head to read
         with pytest.raises(ConfigError, match="sun_lobe 'probe'"):
             TrainConfig(sun_lobe="probe", **wrong).validate()
     TrainConfig(sun_lobe="probe", shading="sh-sg").validate()
+    TrainConfig(sun_lobe="probe", shading="mc", sun_cue="facing", sun_axis="cue-on-metal").validate()  # MC's grid sun
     TrainConfig(sun_cue="facing").validate()  # read off the facing pixels: only where there is a probe sun
     for wrong in (dict(shading="mc"), dict(light_head="global"), dict(sun_lobe="learned")):
         with pytest.raises(ConfigError, match="sun_cue"):
