@@ -74,7 +74,8 @@ class TrainConfig:
     sun_lobe: str = _opt("auto", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
                          "with its axis above the horizon and, on metal, at least what the mirror cue shows near its "
                          "axis above the sky's level, what the cue adds not bending the surface it was read through "
-                         "(probe); auto: probe for the probe head's SG light, learned otherwise",
+                         "(probe; with --shading mc the same SG sky and sun, no floor, on the env grid); "
+                         "auto: probe for the probe head's SG light, learned otherwise",
                          ("auto", "learned", "probe"))
     sun_cue: str = _opt("auto", "the pixels the probe head's SG sun is read off: all that the predicted surface "
                         "covers, or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "

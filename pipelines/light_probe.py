@@ -198,8 +198,8 @@ class ProbeLightHead(nn.Module):
     sun stays above the horizon and, on metal, its power is at least what the cue shows near its axis
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
     the cue adds to the head's own sun (the training shades it on a held surface). MC (``kind="env"``) with
-    ``sun="probe"``: the grid that starts as the mirror cue, plus the same sun (its axis and power as SG's, no
-    floor) with its power in the cells about its axis (:func:`splat_power`). With a light prior
+    ``sun="probe"``: the same SG sky and sun (no floor) on MC's grid, the sky's lobes evaluated at its cells and the
+    sun's power in the cells about its axis (:meth:`_on_grid`). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -237,10 +237,9 @@ class ProbeLightHead(nn.Module):
         self.register_buffer("cell_log_solid_angle", conventions.equirect_solid_angles(height, width).expand(
             -1, width).flatten().log(), persistent=False)
         self.log_gain = nn.Parameter(torch.zeros(()))
-        if kind == "sg":
+        if kind == "sg" or sun == "probe":  # SG light: sky lobes at fixed axes and a sun (MC's probe sun: on its grid)
             self.register_buffer("axes", fibonacci_axes(lobes - 1))
             self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
-        if kind == "sg" or sun == "probe":  # the sun: SG's lobe, or (env) its power on the grid
             self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
             self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
             nn.init.zeros_(self.sun.weight)
@@ -299,17 +298,8 @@ class ProbeLightHead(nn.Module):
         # starts as the mirror cue; by default its luminance: on glossy paint the cue's colour is mostly the paint's
         cue = grid[:, :3] if self.start == "colour" else grid[:, :3].mean(1, keepdim=True)
         log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
-        if self.kind == "env":
-            sky = torch.exp(log_map.clamp_max(self.max_log_radiance))
-            if self.sun_source != "probe":
-                return {"image": sky.permute(0, 2, 3, 1)}
-            solid = self.cell_log_solid_angle.exp().view(1, 1, -1)
-            mean_sky = (sky.flatten(2) * solid).sum(-1) / (4 * math.pi)  # (B, 3)
-            sun_axis, log_p, sun = self._sun(grid, sun_grid, res, h, code, probe_to_world, metal)
-            sharpness, amplitude = self._sun_lobe(sun, mean_sky)
-            power = sg_integral(sharpness[:, 0], amplitude)  # (B, 3) the SG sun's power, on the grid as one source
-            image = sky + splat_power(sun_axis, power, self.height, self.width)
-            return {"image": image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1), "sun_log_p": log_p}
+        if self.kind == "env" and self.sun_source != "probe":
+            return {"image": torch.exp(log_map.clamp_max(self.max_log_radiance)).permute(0, 2, 3, 1)}
         if self.prior_components:
             if probe_to_world is None:
                 raise ValueError("the light prior needs the probe frame's rotation to the world (probe_to_world)")
@@ -319,6 +309,9 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
         sun_axis, log_p, sun = self._sun(grid, sun_grid, res, h, code, probe_to_world, metal)
         sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
+        if self.kind == "env":  # MC's probe sun: SG's light on the grid, so that only the sun can be compact
+            return {"image": self._on_grid(amplitude, sun_axis, sg_integral(sun_sharpness[:, 0], sun_amplitude)),
+                    "sun_log_p": log_p}
         suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
             sun_grid = grid[:, :4] if sun_grid is None else sun_grid
@@ -332,6 +325,16 @@ class ProbeLightHead(nn.Module):
         return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
                 "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
                 "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
+
+    def _on_grid(self, amplitude: torch.Tensor, sun_axis: torch.Tensor, sun_power: torch.Tensor) -> torch.Tensor:
+        """(B, H, W, 3) MC's grid of an SG sky (amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells) and a
+        sun of power (B, 3) at its axis (B, 3), shared among the cells about it (:func:`splat_power`). On a free grid
+        the sky held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the power."""
+        cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3)
+        lobes = torch.exp(self.log_sharpness.exp() * (cells @ self.axes.T - 1))  # (H*W, K-1)
+        sky = torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, self.height, self.width)
+        image = sky + splat_power(sun_axis, sun_power, self.height, self.width)
+        return image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)
 
     def _sun(self, grid: torch.Tensor, sun_grid: torch.Tensor | None, res: torch.Tensor, h: torch.Tensor,
              code: torch.Tensor, probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:

@@ -239,11 +239,13 @@ def test_a_splatted_source_keeps_its_power_and_moves_smoothly_with_its_axis():
         splat_power(axes, power[:, None], h, w)
 
 
-def test_mcs_probe_sun_is_the_sg_suns_power_on_the_cue_grid():
-    """kind "env" with sun "probe": the grid that starts at the cue plus the sun's power where the sun's distribution
-    puts it (the cue's brightest facing cell above the horizon), the same axis as the SG head's; "learned" has no sun."""
+def test_mcs_probe_sun_is_the_sg_light_on_the_grid():
+    """kind "env" with sun "probe": MC's grid is the SG head's light on it, its sky lobes evaluated at the cells and
+    its sun's power (no floor) in the cells about the sun's axis, which is above the horizon where the cue is
+    brightest; with sun "learned" the grid is the refined cue itself, with no sun of its own."""
     h, w = 16, 32
     solid = equirect_solid_angles(h, w).view(1, 1, h, 1)
+    dirs = equirect_directions(h, w).reshape(-1, 3)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0, (12, 20): 400.0}), torch.zeros(1, 4, h, w)], 1)  # one below
     torch.manual_seed(0)
     plain = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="learned")
@@ -253,15 +255,12 @@ def test_mcs_probe_sun_is_the_sg_suns_power_on_the_cue_grid():
     sg = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
     args = (grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
     with torch.no_grad():
-        sky, out, lobes = plain(*args)["image"], head(*args), sg(*args)
-    sun = (out["image"] - sky).permute(0, 3, 1, 2)
+        out, lobes = head(*args), sg(*args)
+    assert "sun_log_p" not in plain(*args)
     torch.testing.assert_close(out["sun_log_p"], lobes["sun_log_p"])
-    # the SG head's own sun lobe, its amplitude relative to the mean of the env grid instead of the sky lobes'
-    mean_sky = (sky.permute(0, 3, 1, 2) * solid).sum((2, 3)) / (4 * math.pi)
-    amplitude = lobes["amplitude"][:, -2] * mean_sky / lobes["amplitude"][:, :-2].mean(1)
-    power = sg_integral(lobes["sharpness"][:, -2], amplitude)
-    torch.testing.assert_close((sun * solid).sum((2, 3)), power, rtol=1e-4, atol=0)
-    dirs = equirect_directions(h, w).reshape(-1, 3)
+    sky = SGLight(lobes["axis"][:, :-2], lobes["sharpness"][:, :-2], lobes["amplitude"][:, :-2]).eval(dirs[None])
+    sun = (out["image"].reshape(1, -1, 3) - sky).mT.reshape(1, 3, h, w)
+    power = sg_integral(lobes["sharpness"][:, -2], lobes["amplitude"][:, -2])  # the SG head's own sun lobe
+    torch.testing.assert_close((sun * solid).sum((2, 3)), power, rtol=1e-4, atol=1e-4)
     assert int((sun * solid).mean(1).flatten().argmax()) == int((dirs @ lobes["axis"][0, -1]).argmax())
     assert float(lobes["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95  # above the horizon, not the brighter cell below
-    assert "sun_log_p" not in plain(*args)
