@@ -611,3 +611,24 @@ def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes
     train(config(tiny_glossy, new, shading="mc", iterations=2), progress=False)
     assert load_config(new).light_head == "auto" and load_config(new).label() == ""
     assert load_run(new).model.config.light_head == "probe"
+
+
+def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_path):
+    """--shading mc --sun-lobe probe: MC's grid is the SG light on it (the head gains the SG sky and sun); the run
+    loads as such, is labelled with the field, predicts a grid and the sun's distribution, and resumes."""
+    from pipelines.model_input import encoder_input
+    from pipelines.runs import load_run
+    out = tmp_path / "mc-sun"
+    train(config(tiny_glossy, out, shading="mc", sun_lobe="probe", iterations=2), progress=False)
+    run = load_run(out)
+    assert run.model.config.sun_lobe == "probe"  # its sun read as the SG sun is: facing pixels, the cue's on metal
+    assert run.config.label() == "sun_lobe=probe, sun_cue=facing, sun_axis=cue-on-metal"
+    assert hasattr(run.model.light_head, "axes") and hasattr(run.model.light_head, "sun")
+    batch = _rendered_batch()
+    flat = batch["image"].flatten(0, 1)
+    cams = Cameras(batch["world_to_camera"].flatten(0, 1), batch["fov"].flatten(), flat.shape[1])
+    with torch.no_grad():
+        pred = run.model(encoder_input(flat), cams)
+    assert pred.light_params["image"].shape[1:] == (16, 32, 3) and torch.isfinite(pred.light_params["image"]).all()
+    assert pred.light_params["sun_log_p"].exp().sum(-1).allclose(torch.ones(len(flat)))
+    train(config(tiny_glossy, out, shading="mc", sun_lobe="probe", iterations=4), resume=True, progress=False)
