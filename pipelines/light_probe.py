@@ -307,14 +307,14 @@ class ProbeLightHead(nn.Module):
             amplitude = torch.exp(log_sky.clamp_max(self.max_log_radiance)).unsqueeze(-1).expand(-1, -1, 3)
         else:
             amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
-        sun_axis, log_p, sun = self._sun(grid, sun_grid, res, h, code, probe_to_world, metal)
+        sun_grid = grid[:, :4] if sun_grid is None else sun_grid
+        sun_axis, log_p, sun = self._sun(sun_grid, res, h, code, probe_to_world, metal)
         sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
         if self.kind == "env":  # MC's probe sun: SG's light on the grid, so that only the sun can be compact
             return {"image": self._on_grid(amplitude, sun_axis, sg_integral(sun_sharpness[:, 0], sun_amplitude)),
                     "sun_log_p": log_p}
         suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
-            sun_grid = grid[:, :4] if sun_grid is None else sun_grid
             cells = self.cell_dirs.flatten(2)[0].T
             power = cue_sun_power(sun_grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
             # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
@@ -336,11 +336,10 @@ class ProbeLightHead(nn.Module):
         image = sky + splat_power(sun_axis, sun_power, self.height, self.width)
         return image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)
 
-    def _sun(self, grid: torch.Tensor, sun_grid: torch.Tensor | None, res: torch.Tensor, h: torch.Tensor,
-             code: torch.Tensor, probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:
+    def _sun(self, sun_grid: torch.Tensor, res: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
+             probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:
         """The sun's axis (B, 3), its distribution over cells as log-probabilities (B, H*W) and the sun's raw
         parameters (B, 4: log sharpness, log rgb intensity relative to the sky) from the features where it is."""
-        sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         luminance = sun_grid[:, :3].mean(1, keepdim=True)
         logits = self.sun_temperature * torch.log(luminance + LOG_EPS)
         if self.sun_axis != "cue":  # a learnt shift of the cue's; "cue": the sun stays where the geometry puts it
