@@ -40,11 +40,24 @@ class SamplingTables:
         return self.pdf.shape[1] // self.height
 
 
+def texel_means(values: torch.Tensor) -> torch.Tensor:
+    """(B, H, W) the mean over each texel of the bilinear interpolation of ``values`` (B, H, W) that
+    :meth:`~dibrpp.lights.EnvMap.lookup` reads: a separable [1/8, 3/4, 1/8] filter, wrapping around in u and
+    clamped in v as the look-up is. Texels next to a bright one (a sun) get its share of the look-up, so their pdf
+    follows it; drawn by texel value alone, they were reached only by the uniform floor and the BRDF's samples."""
+    k = values.new_tensor([0.125, 0.75, 0.125])
+    v = F.pad(values.unsqueeze(1), (1, 1, 0, 0), mode="circular")
+    v = F.conv2d(v, k.view(1, 1, 1, 3))
+    v = F.pad(v, (0, 0, 1, 1), mode="replicate")
+    return F.conv2d(v, k.view(1, 1, 3, 1)).squeeze(1)
+
+
 def build_sampling_tables(image: torch.Tensor) -> SamplingTables:
     """Tables of the (B, H, W, 3) radiance ``image`` (its detached values)."""
     b, h, w, _ = image.shape
     img = image.detach().double()
     lum = (img @ img.new_tensor(conv.LUMINANCE_WEIGHTS)).clamp_min(0)  # (B, H, W); SH maps may ring negative
+    lum = texel_means(lum)
     omega = conv.equirect_solid_angles(h, w, device=img.device, dtype=torch.float64)  # (H, 1)
     weight = (lum * omega).reshape(b, -1)
     total = weight.sum(-1, keepdim=True)

@@ -199,7 +199,8 @@ class ProbeLightHead(nn.Module):
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
     the cue adds to the head's own sun (the training shades it on a held surface). MC (``kind="env"``) with
     ``sun="probe"``: the same SG sky and sun (no floor) on MC's grid, the sky's lobes evaluated at its cells and the
-    sun's power in the cells about its axis (:meth:`_on_grid`). With a light prior
+    sun's power in the cells about its axis (:meth:`_sky_on_grid`), the sky and the sun's lobe also returned apart
+    (training shades the sun in closed form). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -311,8 +312,13 @@ class ProbeLightHead(nn.Module):
         sun_axis, log_p, sun = self._sun(sun_grid, res, h, code, probe_to_world, metal)
         sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
         if self.kind == "env":  # MC's probe sun: SG's light on the grid, so that only the sun can be compact
-            return {"image": self._on_grid(amplitude, sun_axis, sg_integral(sun_sharpness[:, 0], sun_amplitude)),
-                    "sun_log_p": log_p}
+            sky = self._sky_on_grid(amplitude)
+            sun = splat_power(sun_axis, sg_integral(sun_sharpness[:, 0], sun_amplitude), self.height, self.width)
+            clamp = lambda image: image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)  # noqa: E731
+            # "image" is the light (what predict writes, what evaluate scores); training shades "sky" by MC and the
+            # sun's SG lobe in closed form (Prediction.sun_light)
+            return {"image": clamp(sky + sun), "sky": clamp(sky), "sun_axis": sun_axis, "sun_sharpness": sun_sharpness,
+                    "sun_amplitude": sun_amplitude, "sun_log_p": log_p}
         suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
             cells = self.cell_dirs.flatten(2)[0].T
@@ -326,15 +332,14 @@ class ProbeLightHead(nn.Module):
                 "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
                 "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
 
-    def _on_grid(self, amplitude: torch.Tensor, sun_axis: torch.Tensor, sun_power: torch.Tensor) -> torch.Tensor:
-        """(B, H, W, 3) MC's grid of an SG sky (amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells) and a
-        sun of power (B, 3) at its axis (B, 3), shared among the cells about it (:func:`splat_power`). On a free grid
-        the sky held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the power."""
+    def _sky_on_grid(self, amplitude: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) MC's grid of an SG sky: amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells. The
+        sun is added to it as its power shared among the cells about its axis (:func:`splat_power`); on a free grid
+        the sky held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the
+        power."""
         cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3)
         lobes = torch.exp(self.log_sharpness.exp() * (cells @ self.axes.T - 1))  # (H*W, K-1)
-        sky = torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, self.height, self.width)
-        image = sky + splat_power(sun_axis, sun_power, self.height, self.width)
-        return image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)
+        return torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, self.height, self.width)
 
     def _sun(self, sun_grid: torch.Tensor, res: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
              probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:

@@ -149,9 +149,9 @@ def white_balance(light: dict, kind: str, env_height: int) -> dict:
         w = torch.sin(theta).view(1, -1, 1, 1)
         total = (light["image"] * w).sum((1, 2))
     gain = total.mean(-1, keepdim=True) / total.clamp_min(1e-8)  # (B, 3)
-    key = {"sg": "amplitude", "sh": "coeffs", "env": "image"}[kind]
-    shape = (-1,) + (1,) * (light[key].dim() - 2) + (3,)
-    return {**light, key: light[key] * gain.view(shape)}
+    keys = {"sg": ("amplitude",), "sh": ("coeffs",), "env": ("image", "sky", "sun_amplitude")}[kind]
+    scale = lambda t: t * gain.view((-1,) + (1,) * (t.dim() - 2) + (3,))  # noqa: E731
+    return {**light, **{key: scale(light[key]) for key in keys if key in light}}  # MC's probe sun: its parts alike
 
 
 class Prediction:
@@ -186,6 +186,18 @@ class Prediction:
         else:
             light = EnvMap(p["image"])
         return light.in_frame(frame)
+
+    def sky_and_sun(self, world_to_camera: torch.Tensor) -> tuple[EnvMap, SGLight] | None:
+        """MC's probe sun apart from its sky (None for any other light): the sky's grid and the sun's SG lobe, in the
+        world (:meth:`light` holds both on one grid). Training shades the sun in closed form and the sky by MC: with
+        a few samples per pixel the MC estimate's gradient under-weights a compact source against the sky
+        (docs/experiments.md, entry 28)."""
+        p = self.light_params
+        if "sun_amplitude" not in p:
+            return None
+        frame = world_to_probe(world_to_camera)
+        sun = SGLight(p["sun_axis"].unsqueeze(1), p["sun_sharpness"], p["sun_amplitude"].unsqueeze(1))
+        return EnvMap(p["sky"]).in_frame(frame), sun.in_frame(frame)
 
     def _replace(self, fn, light_params: dict | None = None) -> "Prediction":
         """A prediction with ``fn`` applied to every tensor (and the light's parameters replaced, if given)."""

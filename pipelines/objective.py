@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from dibrpp import Cameras, Renderer
-from dibrpp.lights import SGLight
+from dibrpp.lights import EnvMap, SGLight
 from dibrpp.mesh import laplacian_smoothness
 from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
@@ -124,6 +124,17 @@ def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, mat
     return RenderOutput(torch.cat([sky.rgb + sun.rgb, sky.image[..., 3:]], -1), frags, g)
 
 
+def render_sky_and_sun(renderer: Renderer, meshes, cameras: Cameras, material, light: tuple[EnvMap, SGLight]) -> RenderOutput:
+    """The render under MC's probe sun (:meth:`Prediction.sky_and_sun`): the sky's grid shaded by ``renderer``'s MC,
+    the sun's SG lobe in closed form (the SG shading of the paper) on the same G-buffer. Shading is linear in the
+    light, so the image is the whole light's; the sun's part and its gradient carry no sampling noise or bias."""
+    sky, sun = light
+    frags, g = renderer.gbuffer(meshes, cameras, material)
+    lit_by_sky = renderer.shade(frags, g, sky)
+    lit_by_sun = Renderer("sg", raster_settings=renderer.raster_settings).shade(frags, g, sun)
+    return RenderOutput(torch.cat([lit_by_sky.rgb + lit_by_sun.rgb, lit_by_sky.image[..., 3:]], -1), frags, g)
+
+
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
                      iteration: int | None = None) -> tuple[torch.Tensor, dict, dict]:
     """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
@@ -143,10 +154,13 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     detail = albedo_detail(config.flat_albedo_iterations, iteration)
     if detail < 1.0:
         shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
-    light = pred.select(plan.lit_by).light(views.world_to_camera[plan.lit_by])
-    # the SG sun's floor lobe shades a held surface; MC's probe sun has no floor (its light is one grid)
-    held_sun = config.resolved_sun_lobe() == "probe" and config.shading in SG_LIGHT
-    render = render_sun_on_held_surface if held_sun else Renderer.__call__
+    lighting = pred.select(plan.lit_by)
+    light = lighting.light(views.world_to_camera[plan.lit_by])
+    render = Renderer.__call__
+    if config.resolved_sun_lobe() == "probe" and config.shading in SG_LIGHT:  # the SG sun's floor lobe: a held surface
+        render = render_sun_on_held_surface
+    elif config.resolved_sun_lobe() == "probe":  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
+        render, light = render_sky_and_sun, lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
