@@ -103,7 +103,7 @@ def head_on_gt_cue(model, images: torch.Tensor, cameras, gt_meshes: list) -> dic
     samples = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
     light = model.light_from_samples(*(torch.cat(x) for x in zip(*samples)), cameras.world_to_camera, code,
                                      model.material_parameters(code)[2])
-    return white_balance(light, "sg", model.config.env_height) if model.config.light_colour == "white" else light
+    return white_balance(light, "sg") if model.config.light_colour == "white" else light
 
 
 SUN_PIXEL_SHARE = 0.5  # a pixel shows the sun where its radiance is at least this share of the view's brightest

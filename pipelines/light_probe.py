@@ -42,6 +42,9 @@ FACING_MIN = 0.3
 # cone), and the horizon's softness (in sin elevation) below which the sun's prior falls off
 SUN_CONE_DEG = 20.0
 HORIZON_SOFTNESS = 0.05
+# MC's probe sun: its light's grid is this many times finer than the probe grid (64 x 128, 2.8 degree cells), so that
+# a sun trained as a sharp SG lobe is not spread over 11 degree cells
+SUN_GRID_SCALE = 4
 
 
 def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
@@ -166,25 +169,17 @@ def sample_grid(grid: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     return F.grid_sample(grid, xy.to(grid), align_corners=False, padding_mode="border")[:, :, 0].permute(0, 2, 1)
 
 
-def splat_power(axis: torch.Tensor, power: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(B, 3, H, W) radiance of an equirect grid holding a compact source's ``power`` (B, 3) at unit ``axis``
-    (B, 3): the power shared bilinearly among the four cells whose centres surround the axis (wrap-around in
-    azimuth, clamped at the poles), each share divided by its cell's solid angle, so that the grid's integral is
-    ``power`` and moves smoothly with the axis. A source smaller than a cell, such as the sun on MC's grid."""
-    if power.shape != axis.shape:
-        raise ValueError(f"splat_power takes (B, 3) axes and powers, got {tuple(axis.shape)} and {tuple(power.shape)}")
-    uv = conventions.direction_to_equirect_uv(axis)
-    x, y = uv[:, 0] * width - 0.5, uv[:, 1] * height - 0.5
-    x0, y0 = torch.floor(x), torch.floor(y)
-    fx, fy = x - x0, y - y0
-    cols = [x0.long() % width, (x0.long() + 1) % width]
-    rows = [y0.long().clamp(0, height - 1), (y0.long() + 1).clamp(0, height - 1)]
-    share = torch.zeros(axis.shape[0], height * width, device=axis.device, dtype=power.dtype)
-    for r, wy in zip(rows, (1 - fy, fy)):
-        for c, wx in zip(cols, (1 - fx, fx)):
-            share = share.scatter_add(1, (r * width + c).unsqueeze(1), (wy * wx).unsqueeze(1).to(power.dtype))
-    solid = conventions.equirect_solid_angles(height, width, axis.device, power.dtype).expand(-1, width).flatten()
-    return (power.unsqueeze(-1) * (share / solid).unsqueeze(1)).view(-1, 3, height, width)
+def sg_on_grid(axis: torch.Tensor, sharpness: torch.Tensor, amplitude: torch.Tensor,
+               cell_dirs: torch.Tensor) -> torch.Tensor:
+    """(B, 3, H, W) radiance of an equirect grid holding one SG lobe per image (unit ``axis`` (B, 3), ``sharpness``
+    (B, 1), ``amplitude`` (B, 3)): the lobe at the cells' centres ``cell_dirs`` (1, 3, H, W), scaled so that the
+    grid's integral is the lobe's (a lobe narrower than a cell is not lost between the centres)."""
+    h, w = cell_dirs.shape[2:]
+    cells = cell_dirs.flatten(2)[0].T  # (H*W, 3)
+    solid = conventions.equirect_solid_angles(h, w, cells.device, cells.dtype).expand(-1, w).flatten()
+    lobe = torch.exp(sharpness * (axis @ cells.T - 1))  # (B, H*W)
+    lobe = lobe * sg_integral(sharpness[:, 0]).unsqueeze(-1) / (lobe * solid).sum(-1, keepdim=True).clamp_min(1e-30)
+    return (amplitude.unsqueeze(-1) * lobe.unsqueeze(1)).view(-1, 3, h, w)
 
 
 class ProbeLightHead(nn.Module):
@@ -199,8 +194,8 @@ class ProbeLightHead(nn.Module):
     (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
     the cue adds to the head's own sun (the training shades it on a held surface). MC (``kind="env"``) with
     ``sun="probe"``: the same SG sky and sun (no floor) on MC's grid, the sky's lobes evaluated at its cells and the
-    sun's power in the cells about its axis (:meth:`_sky_on_grid`), the sky and the sun's lobe also returned apart
-    (training shades the sun in closed form). With a light prior
+    sun's lobe (:meth:`_sky_on_grid`, :func:`sg_on_grid`, on a grid finer than the probe's), the sky and the sun's lobe
+    also returned apart (training shades the sun in closed form). With a light prior
     (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
     fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
 
@@ -240,6 +235,9 @@ class ProbeLightHead(nn.Module):
         self.log_gain = nn.Parameter(torch.zeros(()))
         if kind == "sg" or sun == "probe":  # SG light: sky lobes at fixed axes and a sun (MC's probe sun: on its grid)
             self.register_buffer("axes", fibonacci_axes(lobes - 1))
+            if kind == "env":  # MC's light's grid (not saved: derived from the probe grid's size)
+                self.register_buffer("fine_cell_dirs", conventions.equirect_directions(
+                    SUN_GRID_SCALE * height, SUN_GRID_SCALE * width).permute(2, 0, 1)[None], persistent=False)
             self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
             self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
             self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
@@ -311,14 +309,15 @@ class ProbeLightHead(nn.Module):
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         sun_axis, log_p, sun = self._sun(sun_grid, res, h, code, probe_to_world, metal)
         sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
-        if self.kind == "env":  # MC's probe sun: SG's light on the grid, so that only the sun can be compact
-            sky = self._sky_on_grid(amplitude)
-            sun = splat_power(sun_axis, sg_integral(sun_sharpness[:, 0], sun_amplitude), self.height, self.width)
+        if self.kind == "env":  # MC's probe sun: SG's light on a grid, so that only the sun can be compact
+            # "image" is the light (what predict writes, what evaluate scores), on a grid SUN_GRID_SCALE times finer
+            # than the probe's so that the sun keeps about its lobe's size; training shades "sky" by MC and the
+            # sun's SG lobe in closed form (Prediction.sky_and_sun)
+            sun = sg_on_grid(sun_axis, sun_sharpness, sun_amplitude, self.fine_cell_dirs)
             clamp = lambda image: image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)  # noqa: E731
-            # "image" is the light (what predict writes, what evaluate scores); training shades "sky" by MC and the
-            # sun's SG lobe in closed form (Prediction.sun_light)
-            return {"image": clamp(sky + sun), "sky": clamp(sky), "sun_axis": sun_axis, "sun_sharpness": sun_sharpness,
-                    "sun_amplitude": sun_amplitude, "sun_log_p": log_p}
+            return {"image": clamp(self._sky_on_grid(amplitude, self.fine_cell_dirs) + sun),
+                    "sky": clamp(self._sky_on_grid(amplitude, self.cell_dirs)), "sun_axis": sun_axis,
+                    "sun_sharpness": sun_sharpness, "sun_amplitude": sun_amplitude, "sun_log_p": log_p}
         suns = [sun_amplitude]
         if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
             cells = self.cell_dirs.flatten(2)[0].T
@@ -332,14 +331,13 @@ class ProbeLightHead(nn.Module):
                 "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
                 "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
 
-    def _sky_on_grid(self, amplitude: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) MC's grid of an SG sky: amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells. The
-        sun is added to it as its power shared among the cells about its axis (:func:`splat_power`); on a free grid
-        the sky held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the
-        power."""
-        cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3)
+    def _sky_on_grid(self, amplitude: torch.Tensor, cell_dirs: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) MC's grid of an SG sky: amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells of
+        ``cell_dirs`` (1, 3, H, W). The sun's lobe is added to it (:func:`sg_on_grid`); on a free grid the sky
+        held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the power."""
+        cells = cell_dirs.flatten(2)[0].T  # (H*W, 3)
         lobes = torch.exp(self.log_sharpness.exp() * (cells @ self.axes.T - 1))  # (H*W, K-1)
-        return torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, self.height, self.width)
+        return torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, *cell_dirs.shape[2:])
 
     def _sun(self, sun_grid: torch.Tensor, res: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
              probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:

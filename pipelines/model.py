@@ -138,13 +138,14 @@ def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.
     return lo + (hi - lo) * t.clamp(0, 1)
 
 
-def white_balance(light: dict, kind: str, env_height: int) -> dict:
+def white_balance(light: dict, kind: str) -> dict:
     """Scale each colour channel so that the light's mean radiance over the sphere is grey."""
     if kind == "sg":
         total = sg_integral(light["sharpness"], light["amplitude"]).sum(1)  # (B, 3)
     elif kind == "sh":
         total = light["coeffs"][:, 0].clamp_min(1e-4)  # the DC term is the mean radiance (up to a constant)
     else:
+        env_height = light["image"].shape[1]
         theta = (torch.arange(env_height, device=light["image"].device) + 0.5) * math.pi / env_height
         w = torch.sin(theta).view(1, -1, 1, 1)
         total = (light["image"] * w).sum((1, 2))
@@ -424,7 +425,7 @@ class Encoder(nn.Module):
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":
-            light = white_balance(light, kind, c.env_height)
+            light = white_balance(light, kind)
         return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
 
     def _light_from_code(self, f: torch.Tensor) -> dict:

@@ -28,7 +28,7 @@ def _free(params: dict, kind: str) -> dict:
     return {k: v.detach().clone().requires_grad_(True) for k, v in free.items()}
 
 
-def _constrained(free: dict, kind: str, env_height: int) -> dict:
+def _constrained(free: dict, kind: str) -> dict:
     if kind == "sg":
         light = {"axis": F.normalize(free["axis"], dim=-1, eps=1e-6),
                  "sharpness": free["sharpness"].exp().clamp(0.5, MAX_SHARPNESS),
@@ -37,7 +37,7 @@ def _constrained(free: dict, kind: str, env_height: int) -> dict:
         light = {"image": free["image"].clamp_max(MAX_LOG_RADIANCE).exp()}
     else:
         light = {"coeffs": free["coeffs"]}
-    return white_balance(light, kind, env_height)
+    return white_balance(light, kind)
 
 
 def refine_light(pred: Prediction, cameras, rgba: torch.Tensor, renderer, steps: int = 30,
@@ -53,7 +53,7 @@ def refine_light(pred: Prediction, cameras, rgba: torch.Tensor, renderer, steps:
     target = hdr_srgb(rgba[..., :3])
     with torch.enable_grad():
         for _ in range(steps):
-            current = base.with_light(_constrained(free, kind, pred.config.env_height))
+            current = base.with_light(_constrained(free, kind))
             current.texture = (base.texture * log_gain.exp().view(-1, 1, 1, 1)).clamp(0, 1)
             out = renderer(meshes, cameras, current.material(), current.light(cameras.world_to_camera))
             loss = foreground_l1(hdr_srgb(out.rgb), target, rgba[..., 3])
@@ -62,6 +62,6 @@ def refine_light(pred: Prediction, cameras, rgba: torch.Tensor, renderer, steps:
             opt.step()
     with torch.no_grad():
         gain = log_gain.exp()
-        refined = base.with_light(_constrained(free, kind, pred.config.env_height))
+        refined = base.with_light(_constrained(free, kind))
         refined.texture = (refined.texture * gain.view(-1, 1, 1, 1)).clamp(0, 1)
     return refined, gain
