@@ -11,7 +11,7 @@ from dibrpp.mesh import Meshes, icosphere
 from dibrpp.sg import sg_integral
 from pipelines.diagnose_light import probe_to_world, with_cue_sun
 from pipelines.light_probe import (ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples,
-                                  splat_power)
+                                  sg_on_grid)
 
 
 def _probe_grid_with(cells: dict, h=16, w=32, sky=1.0):
@@ -219,33 +219,35 @@ def test_the_shift_on_paint_only_follows_the_cue_on_metal_and_is_the_heads_on_pa
             grid, torch.zeros(1, 4), torch.eye(3)[None])
 
 
-def test_a_splatted_source_keeps_its_power_and_moves_smoothly_with_its_axis():
-    """splat_power (MC's sun on the grid): the grid integrates to the power wherever the axis is (poles, the
-    azimuth seam), the cell holding most of it is the one nearest the axis, and the axis gets a gradient."""
-    h, w = 16, 32
+def test_an_sg_lobe_on_the_grid_keeps_its_power_and_its_place():
+    """sg_on_grid (MC's probe sun on its grid): the grid integrates to the lobe's power however sharp it is (a lobe
+    narrower than a cell included), is brightest at the cell nearest the axis, and is the lobe itself where the
+    cells resolve it."""
+    h, w = 64, 128
     solid = equirect_solid_angles(h, w).view(1, 1, h, 1)
-    dirs = equirect_directions(h, w).reshape(-1, 3)
+    cells = equirect_directions(h, w)
+    dirs = cells.reshape(-1, 3)
     axes = torch.nn.functional.normalize(torch.tensor(
         [[0.3, 0.2, 0.9], [0.0, 0.0, 1.0], [-1.0, 1e-4, 0.1], [0.5, -0.5, -0.7]]), dim=-1)
-    power = torch.tensor([[2.0, 1.0, 0.5]]).expand(4, 3)
-    grid = splat_power(axes, power, h, w)
-    torch.testing.assert_close((grid * solid).sum((2, 3)), power)
-    nearest = (axes @ dirs.T).argmax(-1)
-    assert torch.equal((grid * solid).mean(1).flatten(1)[[0, 2, 3]].argmax(-1), nearest[[0, 2, 3]])
-    axis = axes[:1].clone().requires_grad_(True)
-    (splat_power(axis, power[:1], h, w) * torch.randn(1, 3, h, w)).sum().backward()
-    assert axis.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="axes and powers"):
-        splat_power(axes, power[:, None], h, w)
+    amplitude = torch.tensor([[2.0, 1.0, 0.5]]).expand(4, 3)
+    for lam in (1.0, 30.0, 3000.0):
+        sharpness = torch.full((4, 1), lam)
+        grid = sg_on_grid(axes, sharpness, amplitude, cells.permute(2, 0, 1)[None])
+        torch.testing.assert_close((grid * solid).sum((2, 3)), sg_integral(sharpness[:, 0], amplitude), rtol=1e-4, atol=0)
+        assert torch.equal(grid.mean(1).flatten(1).argmax(-1), (axes @ dirs.T).argmax(-1))
+    broad = sg_on_grid(axes, torch.full((4, 1), 5.0), amplitude, cells.permute(2, 0, 1)[None])
+    exact = SGLight(axes.unsqueeze(1), torch.full((4, 1), 5.0), amplitude.unsqueeze(1)).eval(dirs.expand(4, -1, -1))
+    torch.testing.assert_close(broad.flatten(2).mT, exact, rtol=2e-3, atol=0)
 
 
 def test_mcs_probe_sun_is_the_sg_light_on_the_grid():
-    """kind "env" with sun "probe": MC's grid is the SG head's light on it, its sky lobes evaluated at the cells and
-    its sun's power (no floor) in the cells about the sun's axis, which is above the horizon where the cue is
-    brightest; with sun "learned" the grid is the refined cue itself, with no sun of its own."""
+    """kind "env" with sun "probe": MC's grid is the SG head's light on a grid four times finer than the probe's,
+    its sky lobes and its sun's lobe (no floor) evaluated at the cells, the sun above the horizon where the cue is
+    brightest, and the sky and the sun's lobe apart; with sun "learned" the grid is the refined cue itself, with no
+    sun of its own."""
     h, w = 16, 32
-    solid = equirect_solid_angles(h, w).view(1, 1, h, 1)
-    dirs = equirect_directions(h, w).reshape(-1, 3)
+    solid = equirect_solid_angles(4 * h, 4 * w).view(1, 1, 4 * h, 1)
+    dirs, coarse = equirect_directions(4 * h, 4 * w).reshape(-1, 3), equirect_directions(h, w).reshape(-1, 3)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0, (12, 20): 400.0}), torch.zeros(1, 4, h, w)], 1)  # one below
     torch.manual_seed(0)
     plain = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="learned")
@@ -256,11 +258,14 @@ def test_mcs_probe_sun_is_the_sg_light_on_the_grid():
     args = (grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
     with torch.no_grad():
         out, lobes = head(*args), sg(*args)
-    assert "sun_log_p" not in plain(*args)
+    assert "sun_log_p" not in plain(*args) and out["image"].shape == (1, 4 * h, 4 * w, 3)
     torch.testing.assert_close(out["sun_log_p"], lobes["sun_log_p"])
-    sky = SGLight(lobes["axis"][:, :-2], lobes["sharpness"][:, :-2], lobes["amplitude"][:, :-2]).eval(dirs[None])
-    sun = (out["image"].reshape(1, -1, 3) - sky).mT.reshape(1, 3, h, w)
+    sky_lobes = SGLight(lobes["axis"][:, :-2], lobes["sharpness"][:, :-2], lobes["amplitude"][:, :-2])
+    torch.testing.assert_close(out["sky"].reshape(1, -1, 3), sky_lobes.eval(coarse[None]))
+    sun = (out["image"].reshape(1, -1, 3) - sky_lobes.eval(dirs[None])).mT.reshape(1, 3, 4 * h, 4 * w)
     power = sg_integral(lobes["sharpness"][:, -2], lobes["amplitude"][:, -2])  # the SG head's own sun lobe
     torch.testing.assert_close((sun * solid).sum((2, 3)), power, rtol=1e-4, atol=1e-4)
-    assert int((sun * solid).mean(1).flatten().argmax()) == int((dirs @ lobes["axis"][0, -1]).argmax())
-    assert float(lobes["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95  # above the horizon, not the brighter cell below
+    torch.testing.assert_close(out["sun_axis"], lobes["axis"][:, -1])
+    torch.testing.assert_close(out["sun_amplitude"], lobes["amplitude"][:, -2])
+    assert int(sun.mean(1).flatten().argmax()) == int((dirs @ lobes["axis"][0, -1]).argmax())
+    assert float(lobes["axis"][0, -1] @ coarse[3 * w + 8]) > 0.95  # above the horizon, not the brighter cell below

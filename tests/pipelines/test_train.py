@@ -629,7 +629,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
     cams = Cameras(batch["world_to_camera"].flatten(0, 1), batch["fov"].flatten(), flat.shape[1])
     with torch.no_grad():
         pred = run.model(encoder_input(flat), cams)
-    assert pred.light_params["image"].shape[1:] == (16, 32, 3) and torch.isfinite(pred.light_params["image"]).all()
+    assert pred.light_params["image"].shape[1:] == (64, 128, 3) and torch.isfinite(pred.light_params["image"]).all()
     assert pred.light_params["sun_log_p"].exp().sum(-1).allclose(torch.ones(len(flat)))
     train(config(tiny_glossy, out, shading="mc", sun_lobe="probe", iterations=4), resume=True, progress=False)
 
@@ -637,14 +637,12 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
 
 def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
     """MC's probe sun is shaded as its SG lobe (objective.render_sky_and_sun) and the sky by MC. The sky and the sun
-    apart make up the light the model predicts (its grid), and on a rough sphere that render agrees with MC of the
-    whole grid at many samples (on average within a few per cent; per pixel SG's closed form of a rough surface is
-    ~15 % off MC's)."""
+    apart make up the light the model predicts (its grid), and the render agrees with MC of that grid at many samples
+    (on average within a few per cent; per pixel SG's closed form of a rough surface is ~15 % off MC's)."""
     from dibrpp.brdf import Material
     from dibrpp.lights import EnvMap, SGLight
     from dibrpp.mesh import icosphere
-    from dibrpp.sg import sg_integral
-    from pipelines.light_probe import splat_power, world_to_probe
+    from pipelines.light_probe import sg_on_grid, world_to_probe
     from pipelines.model_input import encoder_input
     from pipelines.objective import render_sky_and_sun
 
@@ -656,25 +654,22 @@ def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
     with torch.no_grad():
         pred = model(encoder_input(flat), cams)
         sg_pred = make_model(TrainConfig(shading="sg", image_size=32)).eval()(encoder_input(flat), cams)
-    p = pred.light_params
-    on_grid = lambda axis, sharpness, amplitude, h, w: splat_power(  # noqa: E731
-        axis, sg_integral(sharpness[:, 0], amplitude), h, w).permute(0, 2, 3, 1)
-    torch.testing.assert_close(p["image"], p["sky"] + on_grid(p["sun_axis"], p["sun_sharpness"], p["sun_amplitude"], 16, 32))
+    p, head = pred.light_params, model.light_head
     sky, sun = pred.sky_and_sun(cams.world_to_camera)
     assert isinstance(sky, EnvMap) and isinstance(sun, SGLight) and sun.num_lobes == 1
     assert sg_pred.sky_and_sun(cams.world_to_camera) is None
     # a sun bright enough to matter, overhead (where SG's closed form is exact to ~2 %; it leaks light past the
-    # terminator of a sun behind the object), on a finer grid: the split render against MC of it all
+    # terminator of a sun behind the object): the split render against MC of the grid the model would predict
     frame = world_to_probe(cams.world_to_camera)
     axis, sharpness, amplitude = frame[:, :, 2], p["sun_sharpness"].clamp_max(200.0), 50 * p["sun_amplitude"]
-    fine_sky = torch.nn.functional.interpolate(p["sky"].permute(0, 3, 1, 2), size=(64, 128), mode="bilinear",
-                                               align_corners=False).permute(0, 2, 3, 1)
-    lit = (EnvMap(fine_sky).in_frame(frame), SGLight(axis.unsqueeze(1), sharpness, amplitude.unsqueeze(1)).in_frame(frame))
-    whole = EnvMap(fine_sky + on_grid(axis, sharpness, amplitude, 64, 128)).in_frame(frame)
+    on_grid = lambda *lobe: sg_on_grid(*lobe, head.fine_cell_dirs).permute(0, 2, 3, 1)  # noqa: E731
+    fine_sky = p["image"] - on_grid(p["sun_axis"], p["sun_sharpness"], p["sun_amplitude"])
+    whole = fine_sky + on_grid(axis, sharpness, amplitude)  # the predicted grid with that sun instead
+    lit = (EnvMap(p["sky"]).in_frame(frame), SGLight(axis.unsqueeze(1), sharpness, amplitude.unsqueeze(1)).in_frame(frame))
     sphere = icosphere(3, radius=12.0).expand(2)
     material = Material(albedo=torch.tensor([[0.6, 0.5, 0.4]]), roughness=0.8, specular=0.5)
     split = render_sky_and_sun(Renderer("mc", spp=64, seed=0), sphere, cams, material, lit)
-    reference = Renderer("mc", spp=1024, seed=1)(sphere, cams, material, whole)
+    reference = Renderer("mc", spp=1024, seed=1)(sphere, cams, material, EnvMap(whole).in_frame(frame))
     sky_only = Renderer("mc", spp=64, seed=0)(sphere, cams, material, lit[0])
     covered = reference.alpha > 0.99
     mean = lambda x: x.rgb[covered].mean()  # noqa: E731
