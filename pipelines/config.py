@@ -74,8 +74,9 @@ class TrainConfig:
     sun_lobe: str = _opt("auto", "the probe head's SG sun: its power learned (the image loss may switch it off), or "
                          "with its axis above the horizon and, on metal, at least what the mirror cue shows near its "
                          "axis above the sky's level, what the cue adds not bending the surface it was read through "
-                         "(probe; with --shading mc the same SG sky and sun, no floor, on the env grid); "
-                         "auto: probe for the probe head's SG light, learned otherwise",
+                         "(probe; with --shading mc the same SG sky and sun, no floor, on the env grid, the sun "
+                         "trained in closed form; learned: MC's light is the refined cue's grid); auto: probe "
+                         "wherever there is a probe head",
                          ("auto", "learned", "probe"))
     sun_cue: str = _opt("auto", "the pixels the probe head's SG sun is read off: all that the predicted surface "
                         "covers, or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
@@ -156,8 +157,7 @@ class TrainConfig:
         for name, value in (("sun_cue", "facing"), ("sun_axis", "cue"), ("sun_axis", "cue-on-metal")):
             if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
                 raise ConfigError(f"{name} '{value}' reads the probe head's sun off the mirror cue; use it with the "
-                                  "probe sun (--sun-lobe probe, or auto with --shading sg or sh-sg; the probe light "
-                                  "head)")
+                                  "probe sun (--sun-lobe probe or auto, with the probe light head)")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
@@ -199,12 +199,14 @@ class TrainConfig:
         return "global" if self.shading == "sh" else "probe"
 
     def resolved_sun_lobe(self) -> str:
-        """The probe head's sun. 'auto': read off the mirror cue (probe) wherever there is a probe head's SG sun (the
-        default since 2026-11-26: on metal it places the sun better, on paint it is the learned sun above the
-        horizon), else learned (MC's env map, the global head, SH have no such lobe)."""
+        """The probe head's sun. 'auto': read off the mirror cue (probe) wherever there is a probe head (for SG light
+        the default since 2026-11-26: on metal it places the sun better, on paint it is the learned sun above the
+        horizon; for MC since 2026-11-27, its sun trained in closed form: the sun better placed on both sets),
+        else learned (the global head and SH have no such lobe). (An MC run written between those dates says 'auto'
+        for the learned sun: runs.load_config reads it so.)"""
         if self.sun_lobe != "auto":
             return self.sun_lobe
-        return "probe" if self.shading in SG_LIGHT and self.resolved_light_head() == "probe" else "learned"
+        return "probe" if self.resolved_light_head() == "probe" else "learned"
 
     def resolved_sun_cue(self) -> str:
         """The pixels the probe sun is read off. 'auto': those facing the camera wherever there is a probe sun (the
@@ -319,7 +321,8 @@ VARIANTS: dict[str, Variant] = {
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third (the "
                            "default until 2026-11-25)", {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
     "learned-sun": Variant("the probe head's sun lobe learned like the sky's (the image loss may switch it off, no "
-                           "horizon; the default until 2026-11-26)", {"sun_lobe": "learned"},
+                           "horizon; SG's default until 2026-11-26; MC's light then a free grid, its default until "
+                           "2026-11-27)", {"sun_lobe": "learned"},
                            runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
                                  ("glossy", 2))),
     "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "

@@ -70,18 +70,20 @@ def load_config(run: Path) -> TrainConfig:
         config = TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved} if isinstance(saved, dict) else saved)
     except ConfigError as e:
         raise DataError(f"{path}: {e}") from e
-    return _light_head_as_trained(config, Path(run))
+    return _auto_as_trained(config, Path(run))
 
 
-def _light_head_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
-    """Until 2026-11-25 light_head 'auto' gave MC the global head, since then the probe head: an MC run saying
-    'auto' gets the head its checkpoint's model was built with, so that it loads, is labelled and resumes as what
-    it was."""
-    if config.shading != "mc" or config.light_head != "auto" or not (run / CHECKPOINT).exists():
+def _auto_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
+    """An MC run saying 'auto' gets the light head and the sun its checkpoint's model was built with, so that it
+    loads, is labelled and resumes as what it was: until 2026-11-25 'auto' gave MC the global head, since then the
+    probe head; until 2026-11-27 it gave MC's probe head the learned sun, since then the probe sun."""
+    if config.shading != "mc" or not (run / CHECKPOINT).exists():
         return config
-    trained = read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("light_head")
-    if trained in ("global", "probe") and trained != config.resolved_light_head():
-        return replace(config, light_head=trained)
+    trained = read_checkpoint(run / CHECKPOINT).get("model_config", {})
+    for name, values in (("light_head", ("global", "probe")), ("sun_lobe", ("learned", "probe"))):
+        resolved = getattr(config, f"resolved_{name}")()  # the sun's 'auto' after the head's
+        if getattr(config, name) == "auto" and trained.get(name) in values and trained[name] != resolved:
+            config = replace(config, **{name: trained[name]})
     return config
 
 

@@ -54,8 +54,9 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
         pred = snap["pred"]
         # SH shading is Lambertian (DIB-R): roughness and specular do not enter it, by design
         material = [pred.roughness, pred.specular] if shading != "sh" else []
-        # the probe head's sun distribution (sun_log_p) is read only by the diagnostic sun supervision
-        light = [v for k, v in pred.light_params.items() if k != "sun_log_p"]
+        # the probe head's sun distribution (sun_log_p) is read only by the diagnostic sun supervision; MC's grid
+        # ("image", the light it predicts) is shaded in training as its parts, the sky's grid and the sun's lobe
+        light = [v for k, v in pred.light_params.items() if k != "sun_log_p" and not (shading == "mc" and k == "image")]
         tensors = [pred.verts, pred.texture] + material + light
         for t in tensors:
             t.retain_grad()
@@ -353,14 +354,15 @@ def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path
 @pytest.mark.parametrize("field, before, after", [("sun_lobe", "learned", "probe"), ("sun_cue", "all", "facing"),
                                                   ("sun_axis", "head", "cue-on-metal")])
 @pytest.mark.parametrize("shading, light_head, probe_sun", [("sg", "auto", True), ("sh-sg", "probe", True),
-                                                              ("sg", "global", False), ("mc", "auto", False),
+                                                              ("sg", "global", False), ("mc", "auto", True),
                                                               ("sh", "auto", False)])
-def test_the_probe_sun_and_its_facing_cue_are_the_default_wherever_there_is_a_probe_heads_sg_sun(
+def test_the_probe_sun_and_its_facing_cue_are_the_default_wherever_there_is_a_probe_head(
         tmp_path, field, before, after, shading, light_head, probe_sun):
-    """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light and 'learned' elsewhere; sun_cue
+    """sun_lobe 'auto' (since 2026-11-26) is 'probe' for the probe head's SG light (and MC's, since 2026-11-27) and
+    'learned' elsewhere; sun_cue
     'auto' (since 2026-11-26, late) is 'facing' wherever the sun is the probe's, else 'all'; sun_axis 'auto' (since
     2026-11-26, seventh session) is 'cue-on-metal' wherever the sun is the probe's, else 'head'. A run written before
-    a field had its old value: a probe-head SG run is labelled so and refuses to resume under today's default;
+    a field had its old value: a probe-head run is labelled so and refuses to resume under today's default;
     the others (no probe sun either way) are today's and resume."""
     from pipelines.runs import load_config
     from pipelines.train import check_resumable
@@ -581,7 +583,8 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     TrainConfig(sun_lobe="probe", shading="sh-sg").validate()
     TrainConfig(sun_lobe="probe", shading="mc", sun_cue="facing", sun_axis="cue-on-metal").validate()  # MC's grid sun
     TrainConfig(sun_cue="facing").validate()  # read off the facing pixels: only where there is a probe sun
-    for wrong in (dict(shading="mc"), dict(light_head="global"), dict(sun_lobe="learned")):
+    TrainConfig(sun_cue="facing", shading="mc").validate()  # MC's default sun since 2026-11-27
+    for wrong in (dict(shading="mc", sun_lobe="learned"), dict(light_head="global"), dict(sun_lobe="learned")):
         with pytest.raises(ConfigError, match="sun_cue"):
             TrainConfig(sun_cue="facing", **wrong).validate()
         for axis in ("cue", "cue-on-metal"):
@@ -603,7 +606,7 @@ def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes
     (old / "config.json").write_text(json.dumps({**written, "light_head": "auto"}))  # as the run wrote it then
     run = load_run(old)
     assert run.config.light_head == "global" and run.model.config.light_head == "global"
-    assert run.config.label() == "light_head=global"
+    assert run.config.label() == "light_head=global, sun_lobe=learned, sun_cue=all, sun_axis=head"
     with pytest.raises(DataError, match="light_head: 'global' -> 'auto'"):
         train(config(tiny_glossy, old, shading="mc", iterations=4), resume=True, progress=False)
     train(config(tiny_glossy, old, shading="mc", light_head="global", iterations=4), resume=True, progress=False)
@@ -614,15 +617,16 @@ def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes
 
 
 def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_path):
-    """--shading mc --sun-lobe probe: MC's grid is the SG light on it (the head gains the SG sky and sun); the run
-    loads as such, is labelled with the field, predicts a grid and the sun's distribution, and resumes."""
+    """MC's default since 2026-11-27: its grid is the SG light on it (the head gains the SG sky and sun); the run
+    loads as such, predicts a grid and the sun's distribution, and resumes. An MC run that said 'auto' for the
+    learned sun (the default before) loads, is labelled and resumes as what it was."""
     from pipelines.model_input import encoder_input
     from pipelines.runs import load_run
     out = tmp_path / "mc-sun"
-    train(config(tiny_glossy, out, shading="mc", sun_lobe="probe", iterations=2), progress=False)
+    train(config(tiny_glossy, out, shading="mc", iterations=2), progress=False)
     run = load_run(out)
     assert run.model.config.sun_lobe == "probe"  # its sun read as the SG sun is: facing pixels, the cue's on metal
-    assert run.config.label() == "sun_lobe=probe, sun_cue=facing, sun_axis=cue-on-metal"
+    assert run.config.label() == "" and run.config.resolved_sun_axis() == "cue-on-metal"
     assert hasattr(run.model.light_head, "axes") and hasattr(run.model.light_head, "sun")
     batch = _rendered_batch()
     flat = batch["image"].flatten(0, 1)
@@ -631,8 +635,15 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
         pred = run.model(encoder_input(flat), cams)
     assert pred.light_params["image"].shape[1:] == (64, 128, 3) and torch.isfinite(pred.light_params["image"]).all()
     assert pred.light_params["sun_log_p"].exp().sum(-1).allclose(torch.ones(len(flat)))
-    train(config(tiny_glossy, out, shading="mc", sun_lobe="probe", iterations=4), resume=True, progress=False)
-
+    train(config(tiny_glossy, out, shading="mc", iterations=4), resume=True, progress=False)
+    old = tmp_path / "mc-learned-sun"
+    train(config(tiny_glossy, old, shading="mc", sun_lobe="learned", iterations=2), progress=False)
+    written = json.loads((old / "config.json").read_text())
+    (old / "config.json").write_text(json.dumps({**written, "sun_lobe": "auto"}))  # as the run wrote it then
+    run = load_run(old)
+    assert run.config.sun_lobe == "learned" and run.model.config.sun_lobe == "learned"
+    assert run.config.label() == "sun_lobe=learned, sun_cue=all, sun_axis=head"
+    train(config(tiny_glossy, old, shading="mc", sun_lobe="learned", iterations=4), resume=True, progress=False)
 
 
 def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
