@@ -594,6 +594,16 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     TrainConfig(sun_axis="cue-on-metal").validate()
 
 
+def _mc_run_written_with_auto(data, out, field: str, trained: str):
+    """An MC run trained with ``field`` = ``trained`` whose config.json says 'auto' for it, as runs wrote it when
+    'auto' meant ``trained``; loaded."""
+    from pipelines.runs import load_run
+    train(config(data, out, shading="mc", iterations=2, **{field: trained}), progress=False)
+    written = json.loads((out / "config.json").read_text())
+    (out / "config.json").write_text(json.dumps({**written, field: "auto"}))
+    return load_run(out)
+
+
 def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes_as_it_was(tiny_glossy, tmp_path):
     """light_head 'auto' gives MC the probe head since 2026-11-25; an MC run whose config says 'auto' but whose
     checkpoint holds the global head (written before) is read as light_head 'global'."""
@@ -601,10 +611,7 @@ def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes
     assert TrainConfig(shading="mc").resolved_light_head() == "probe"
     assert TrainConfig(shading="sh").resolved_light_head() == "global"
     old = tmp_path / "old"
-    train(config(tiny_glossy, old, shading="mc", light_head="global", iterations=2), progress=False)
-    written = json.loads((old / "config.json").read_text())
-    (old / "config.json").write_text(json.dumps({**written, "light_head": "auto"}))  # as the run wrote it then
-    run = load_run(old)
+    run = _mc_run_written_with_auto(tiny_glossy, old, "light_head", "global")
     assert run.config.light_head == "global" and run.model.config.light_head == "global"
     assert run.config.label() == "light_head=global, sun_lobe=learned, sun_cue=all, sun_axis=head"
     with pytest.raises(DataError, match="light_head: 'global' -> 'auto'"):
@@ -637,10 +644,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
     assert pred.light_params["sun_log_p"].exp().sum(-1).allclose(torch.ones(len(flat)))
     train(config(tiny_glossy, out, shading="mc", iterations=4), resume=True, progress=False)
     old = tmp_path / "mc-learned-sun"
-    train(config(tiny_glossy, old, shading="mc", sun_lobe="learned", iterations=2), progress=False)
-    written = json.loads((old / "config.json").read_text())
-    (old / "config.json").write_text(json.dumps({**written, "sun_lobe": "auto"}))  # as the run wrote it then
-    run = load_run(old)
+    run = _mc_run_written_with_auto(tiny_glossy, old, "sun_lobe", "learned")
     assert run.config.sun_lobe == "learned" and run.model.config.sun_lobe == "learned"
     assert run.config.label() == "sun_lobe=learned, sun_cue=all, sun_axis=head"
     train(config(tiny_glossy, old, shading="mc", sun_lobe="learned", iterations=4), resume=True, progress=False)
