@@ -77,8 +77,8 @@ def _auto_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
     """An MC run saying 'auto' gets the light head and the sun its checkpoint's model was built with, so that it
     loads, is labelled and resumes as what it was: until 2026-11-25 'auto' gave MC the global head, since then the
     probe head; until 2026-11-27 it gave MC's probe head the learned sun, since then the probe sun."""
-    if config.shading != "mc" or not (run / CHECKPOINT).exists():
-        return config
+    if config.shading != "mc" or "auto" not in (config.light_head, config.sun_lobe) or not (run / CHECKPOINT).exists():
+        return config  # nothing to read: the checkpoint is loaded once more only where 'auto' is ambiguous
     trained = read_checkpoint(run / CHECKPOINT).get("model_config", {})
     for name, values in (("light_head", ("global", "probe")), ("sun_lobe", ("learned", "probe"))):
         resolved = getattr(config, f"resolved_{name}")()  # the sun's 'auto' after the head's
