@@ -78,6 +78,8 @@ class TrainConfig:
                          "trained in closed form; learned: MC's light is the refined cue's grid); auto: probe "
                          "wherever there is a probe head",
                          ("auto", "learned", "probe"))
+    sun_min_sharpness: float = _opt(0.5, "the least sharpness of the probe head's sun lobe (0.5: as broad as a "
+                                    "hemisphere; higher keeps it a sun, not a glow over half the sky)", minimum=0.5)
     sun_cue: str = _opt("auto", "the pixels the probe head's SG sun is read off: all that the predicted surface "
                         "covers, or those facing the camera (n.v >= 0.3; grazing pixels at the silhouette mirror the "
                         "direction straight behind the object); auto: facing wherever there is a probe sun",
@@ -153,6 +155,10 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading == "sh" or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's sun off the mirror cue; use it with --shading "
                               "sg, sh-sg or mc and the probe light head")
+        if self.sun_min_sharpness != 0.5 and (self.shading == "sh" or self.resolved_light_head() != "probe" or (
+                self.shading == "mc" and self.resolved_sun_lobe() != "probe")):
+            raise ConfigError("sun_min_sharpness bounds the probe head's sun lobe; use it with the probe light head and "
+                              "--shading sg or sh-sg, or mc with its probe sun (--sun-lobe probe or auto)")
         # the choices that read the probe sun's cue
         for name, value in (("sun_cue", "facing"), ("sun_axis", "cue"), ("sun_axis", "cue-on-metal")):
             if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
@@ -325,6 +331,9 @@ VARIANTS: dict[str, Variant] = {
                            "2026-11-27)", {"sun_lobe": "learned"},
                            runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
                                  ("glossy", 2))),
+    "sharp-sun": Variant("the probe head's sun lobe at least sharpness 20 (half its peak 15 degrees off its axis): MC's "
+                         "closed-form sun had become a glow over half the sky (sharpness ~1, 80 % of the power)",
+                         {"sun_min_sharpness": 20.0}, runs=()),
     "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "
                               "included (which mirror the direction behind the object; the default until 2026-11-26, "
                               "late)", {"sun_cue": "all"},

@@ -96,6 +96,8 @@ class ModelConfig:
     # where the SG sun's axis is: the cue's soft arg-max shifted by a learnt residual (head), the cue's alone (cue),
     # or the shift scaled by 1 - the predicted metallic (cue-on-metal)
     sun_axis: str = "head"
+    # the least sharpness of the probe head's sun lobe (0.5: as broad as a hemisphere)
+    sun_min_sharpness: float = 0.5
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
@@ -268,7 +270,7 @@ class Encoder(nn.Module):
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
                                              start=c.probe_start, prior_components=c.light_prior, sun=c.sun_lobe,
-                                             sun_axis=c.sun_axis)
+                                             sun_axis=c.sun_axis, sun_min_sharpness=c.sun_min_sharpness)
             self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
                 c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
         else:

@@ -188,7 +188,7 @@ def make_model(config: TrainConfig) -> Encoder:
                                light_head=config.resolved_light_head(), probe_start=config.probe_start,
                                probe_samples=config.probe_samples, input_range=config.input_range,
                                sun_lobe=config.resolved_sun_lobe(), sun_cue=config.resolved_sun_cue(),
-                               sun_axis=config.resolved_sun_axis(),
+                               sun_axis=config.resolved_sun_axis(), sun_min_sharpness=config.sun_min_sharpness,
                                shape_detail=config.shape_detail,
                                light_prior=light_prior.COMPONENTS if prior else 0))
     if prior:

@@ -298,3 +298,26 @@ def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
     assert ((normals[:, centre] * to_camera[:, centre]).sum(-1) > 0.95).all()
     with pytest.raises(ValueError, match="pixels"):
         pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
+
+
+def test_the_sun_lobes_floor_keeps_it_sharp_and_learning():
+    """With a least sharpness the sun lobe is never broader than it, and the head still moves it there (the floor
+    shifts the head's sharpness instead of clamping it, so the gradient does not vanish); the default floor 0.5 is
+    the plain clamp at 0.5 of the runs trained before it existed."""
+    from pipelines.light_probe import ProbeLightHead
+    from pipelines.model import MAX_LOG_RADIANCE, MAX_SHARPNESS
+    raw = torch.tensor([[-4.0, 0, 0, 0], [math.log(3.0), 0, 0, 0], [12.0, 0, 0, 0]], requires_grad=True)
+    sky = torch.ones(3, 3)
+    plain = ProbeLightHead("sg", 4, 8, 16, MAX_SHARPNESS, MAX_LOG_RADIANCE)
+    torch.testing.assert_close(plain._sun_lobe(raw, sky)[0][:, 0], torch.tensor([0.5, 3.0, MAX_SHARPNESS]))
+    floored = ProbeLightHead("sg", 4, 8, 16, MAX_SHARPNESS, MAX_LOG_RADIANCE, sun_min_sharpness=20.0)
+    sharpness = floored._sun_lobe(raw, sky)[0][:, 0]
+    torch.testing.assert_close(sharpness, torch.tensor([20.0, 22.5, MAX_SHARPNESS]))
+    sharpness[1].backward()
+    assert raw.grad[1, 0] > 0  # just above the floor the head's output still moves the lobe
+    with pytest.raises(ValueError, match="least sharpness"):
+        ProbeLightHead("sg", 4, 8, 16, MAX_SHARPNESS, MAX_LOG_RADIANCE, sun_min_sharpness=0.1)
+    model = Encoder(ModelConfig(shading="mc", light_head="probe", sun_lobe="probe", image_size=32,
+                                sun_min_sharpness=20.0))
+    pred = model(torch.rand(2, 4, 32, 32), _cams(2))
+    assert (pred.light_params["sun_sharpness"] >= 20.0).all()

@@ -592,6 +592,11 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
                 TrainConfig(sun_axis=axis, **wrong).validate()
     TrainConfig(sun_axis="cue").validate()
     TrainConfig(sun_axis="cue-on-metal").validate()
+    for ok in (dict(), dict(shading="mc"), dict(sun_lobe="learned")):  # SG's learned sun is a lobe too
+        TrainConfig(sun_min_sharpness=20.0, **ok).validate()
+    for wrong in (dict(shading="mc", sun_lobe="learned"), dict(light_head="global"), dict(shading="sh")):
+        with pytest.raises(ConfigError, match="sun_min_sharpness"):
+            TrainConfig(sun_min_sharpness=20.0, **wrong).validate()
 
 
 def _mc_run_written_with_auto(data, out, field: str, trained: str):
