@@ -155,7 +155,9 @@ class TrainConfig:
         if self.sun_lobe == "probe" and (self.shading == "sh" or self.resolved_light_head() != "probe"):
             raise ConfigError("sun_lobe 'probe' reads the probe head's sun off the mirror cue; use it with --shading "
                               "sg, sh-sg or mc and the probe light head")
-        if self.sun_min_sharpness != 0.5 and (self.shading == "sh" or self.resolved_light_head() != "probe" or (
+        # (SH with the probe head is refused above, so without a probe head there is no sun lobe; MC's has one only
+        # with its probe sun)
+        if self.sun_min_sharpness != 0.5 and (self.resolved_light_head() != "probe" or (
                 self.shading == "mc" and self.resolved_sun_lobe() != "probe")):
             raise ConfigError("sun_min_sharpness bounds the probe head's sun lobe; use it with the probe light head and "
                               "--shading sg or sh-sg, or mc with its probe sun (--sun-lobe probe or auto)")
