@@ -599,6 +599,14 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
             TrainConfig(sun_min_sharpness=20.0, **wrong).validate()
 
 
+def test_spp32_sets_mcs_samples_and_the_samples_alone_label_no_run():
+    # the samples per pixel are a budget, as the lobes and the iterations: the presets set them (smoke 2, paper 64)
+    assert TrainConfig.from_dict(dict(shading="mc", variant="spp32")).spp == 32
+    assert TrainConfig.from_dict(dict(shading="mc", variant="spp32")).label() == "spp32"
+    assert TrainConfig(shading="mc", spp=32).label() == ""
+    assert TrainConfig.preset("paper", shading="mc").label() == TrainConfig.preset("smoke", shading="mc").label() == ""
+
+
 def _mc_run_written_with_auto(data, out, field: str, trained: str):
     """An MC run trained with ``field`` = ``trained`` whose config.json says 'auto' for it, as runs wrote it when
     'auto' meant ``trained``; loaded."""
