@@ -336,8 +336,8 @@ VARIANTS: dict[str, Variant] = {
     "sharp-sun": Variant("the probe head's sun lobe at least sharpness 20 (half its peak 15 degrees off its axis): MC's "
                          "closed-form sun had become a glow over half the sky (sharpness ~1, 80 % of the power)",
                          {"sun_min_sharpness": 20.0}, runs=()),
-    "spp32": Variant("MC trained at 32 samples per pixel instead of 8: less noise in every gradient (the albedo's, the "
-                     "normals', the light's); the sky's alone was measured unbiased at 8", {"spp": 32}, runs=()),
+    "spp32": Variant("MC trained at 32 samples per pixel instead of 8, whose gradient at the start of training is up "
+                     "to a third too large (the backbone's, the material head's)", {"spp": 32}, runs=()),
     "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "
                               "included (which mirror the direction behind the object; the default until 2026-11-26, "
                               "late)", {"sun_cue": "all"},
