@@ -157,7 +157,7 @@ class TrainConfig:
                               "sg, sh-sg or mc and the probe light head")
         # (SH with the probe head is refused above, so without a probe head there is no sun lobe; MC's has one only
         # with its probe sun)
-        if self.sun_min_sharpness != 0.5 and (self.resolved_light_head() != "probe" or (
+        if self.sun_min_sharpness != TrainConfig.sun_min_sharpness and (self.resolved_light_head() != "probe" or (
                 self.shading == "mc" and self.resolved_sun_lobe() != "probe")):
             raise ConfigError("sun_min_sharpness bounds the probe head's sun lobe; use it with the probe light head and "
                               "--shading sg or sh-sg, or mc with its probe sun (--sun-lobe probe or auto)")

@@ -41,6 +41,7 @@ FACING_MIN = 0.3
 # sun_lobe "probe": the cue's radiance within this angle of the sun's axis is the sun's (metrics.dominant_direction's
 # cone), and the horizon's softness (in sin elevation) below which the sun's prior falls off
 SUN_CONE_DEG = 20.0
+SUN_BROADEST = 0.5  # the sun lobe's own least sharpness: as broad as a hemisphere (what --sun-min-sharpness raises)
 HORIZON_SOFTNESS = 0.05
 # MC's probe sun: its light's grid is this many times finer than the probe grid (64 x 128, 2.8 degree cells), so that
 # a sun trained as a sharp SG lobe is not spread over 11 degree cells
@@ -202,7 +203,7 @@ class ProbeLightHead(nn.Module):
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
                  max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
                  prior_components: int = 0, sun: str = "learned", sun_axis: str = "head",
-                 sun_min_sharpness: float = 0.5):
+                 sun_min_sharpness: float = SUN_BROADEST):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -220,8 +221,9 @@ class ProbeLightHead(nn.Module):
         if prior_components and kind != "sg":
             raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
         self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
-        if not 0.5 <= sun_min_sharpness < max_sharpness:
-            raise ValueError(f"the sun lobe's least sharpness must be in [0.5, {max_sharpness:g}), got {sun_min_sharpness}")
+        if not SUN_BROADEST <= sun_min_sharpness < max_sharpness:
+            raise ValueError(f"the sun lobe's least sharpness must be in [{SUN_BROADEST}, {max_sharpness:g}), got "
+                             f"{sun_min_sharpness}")
         self.sun_min_sharpness = sun_min_sharpness
         cin = 8 + 3  # the grid and each cell's direction
         self.inp = nn.Conv2d(cin, channels, 3)
@@ -372,8 +374,8 @@ class ProbeLightHead(nn.Module):
     def _sun_lobe(self, sun: torch.Tensor, sky: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, 1) sharpness and (B, 3) amplitude of the sun lobe from its raw parameters and the sky's mean (B, 3)."""
         # the floor shifts the head's sharpness rather than clamping it (a clamped lobe gets no gradient)
-        shift = self.sun_min_sharpness - 0.5
-        sharpness = sun[:, :1].exp().clamp(0.5, self.max_sharpness - shift) + shift
+        shift = self.sun_min_sharpness - SUN_BROADEST
+        sharpness = sun[:, :1].exp().clamp(SUN_BROADEST, self.max_sharpness - shift) + shift
         return sharpness, torch.exp((sun[:, 1:] + sky.log()).clamp_max(self.max_log_radiance))
 
     @property

@@ -34,7 +34,7 @@ from dibrpp.lights import EnvMap, SGLight, SHLight
 from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
 from dibrpp.sg import sg_integral
 
-from .light_probe import ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
+from .light_probe import SUN_BROADEST, ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
 from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
 from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
@@ -97,7 +97,7 @@ class ModelConfig:
     # or the shift scaled by 1 - the predicted metallic (cue-on-metal)
     sun_axis: str = "head"
     # the least sharpness of the probe head's sun lobe (0.5: as broad as a hemisphere)
-    sun_min_sharpness: float = 0.5
+    sun_min_sharpness: float = SUN_BROADEST
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
