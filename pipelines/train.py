@@ -157,7 +157,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
                desc=f"{Path(config.dataset).name}/{config.shading}", unit="it")
     t_start = time.perf_counter()
     for it in bar:
-        renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True)  # MC noise differs per iteration, reproducibly
+        renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True,  # MC noise differs per
+                                 spp=config.training_spp(it))  # iteration, reproducibly
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, batch_pairing(config))
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it)
         check_finite({"total": total, **terms})

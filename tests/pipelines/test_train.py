@@ -607,6 +607,28 @@ def test_spp32_sets_mcs_samples_and_the_samples_alone_label_no_run():
     assert TrainConfig.preset("paper", shading="mc").label() == TrainConfig.preset("smoke", shading="mc").label() == ""
 
 
+def test_spp_start_sets_mcs_samples_over_the_first_fifth_and_labels_a_run():
+    c = TrainConfig.from_dict(dict(shading="mc", variant="spp32-start"))
+    assert [c.training_spp(it) for it in (0, 299, 300, 1499)] == [32, 32, 8, 8]  # 1500 iterations: the first 300
+    assert [TrainConfig(shading="mc").training_spp(it) for it in (0, 1499)] == [8, 8]
+    assert TrainConfig(shading="mc", spp_start=32).label() == "spp_start=32"  # a curriculum, not a budget
+    with pytest.raises(ConfigError, match="spp_start.*--shading mc"):
+        TrainConfig(spp_start=32).validate()
+
+
+def test_an_mc_run_renders_with_spp_start_then_spp(tiny_glossy, tmp_path, monkeypatch):
+    import pipelines.train as training
+    used = []
+
+    def renderer_of(config, seed, training=False, spp=None):  # the run's own renderer, its samples recorded
+        used.append(spp)
+        return make_renderer(config, seed, training, spp)
+    monkeypatch.setattr(training, "make_renderer", renderer_of)
+    train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4,
+                 compile=False), progress=False)
+    assert used == [4, 4] + [2] * 8
+
+
 def _mc_run_written_with_auto(data, out, field: str, trained: str):
     """An MC run trained with ``field`` = ``trained`` whose config.json says 'auto' for it, as runs wrote it when
     'auto' meant ``trained``; loaded."""
