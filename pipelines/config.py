@@ -47,6 +47,10 @@ class TrainConfig:
                             "to zero over the last third (the weights settle instead of jittering at the end), or "
                             "constant throughout", ("cosine-tail", "constant"))
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
+    mc_loss_samples: str = _opt("shared", "MC's image losses: their gradient from the render they score (shared), or "
+                                "each pixel's sign from one render and the derivative from a second with other samples "
+                                "(independent): with shared samples the expected loss holds the render's noise, which "
+                                "training lowers by blurring the light", ("shared", "independent"))
     spp_start: int = _opt(0, "MC samples per pixel over the run's first fifth, then --spp (0: --spp throughout): "
                           "at the start a few samples' gradient is biased, later it is not", minimum=0)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
@@ -172,6 +176,9 @@ class TrainConfig:
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
+        if self.mc_loss_samples == "independent" and (self.shading != "mc" or self.resolved_sun_lobe() != "probe"):
+            raise ConfigError("mc_loss_samples 'independent' shades MC's sky twice under its probe sun; use it with "
+                              "--shading mc and the probe sun (--sun-lobe probe or auto, with the probe light head)")
         if self.spp_start and self.shading != "mc":
             raise ConfigError("spp_start sets MC's samples per pixel at the start of training; use it with --shading mc")
         if self.variant and self.variant not in VARIANTS:
@@ -352,6 +359,9 @@ VARIANTS: dict[str, Variant] = {
     "spp32-start": Variant("MC trained at 32 samples per pixel over the run's first fifth, 8 after it: the bias of 8 "
                            "samples' gradient at the start removed at 1.4x, not 3x, an 8-sample run's time",
                            {"spp_start": 32}, runs=()),
+    "independent-samples": Variant("MC's image losses with each pixel's sign from one render, the derivative from a "
+                                   "second with other samples: no pull toward a low-noise (blurred) light",
+                                   {"mc_loss_samples": "independent"}, runs=()),
     "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "
                               "included (which mirror the direction behind the object; the default until 2026-11-26, "
                               "late)", {"sun_cue": "all"},

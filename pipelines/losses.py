@@ -31,10 +31,27 @@ def normal_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((1 - cos) * both).sum() / both.sum().clamp_min(1)
 
 
-def foreground_l1(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
-    """Mean L1 over foreground pixels; images (B, H, W, 3) in the same space, mask (B, H, W)."""
+def independent_abs(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """|render - target| for two MC renders ``a``, ``b`` of the same image with independent samples: the value is
+    their mean, the gradient each one's sign times the other's derivative. With one render the sign and the
+    derivative share its noise, so the expected loss holds the noise itself, and training lowers it by blurring
+    the light (a sun becomes a glow); with independent samples the gradient is the expected loss's at fixed noise."""
+    sign_a, sign_b = (a - target).sign().detach(), (b - target).sign().detach()
+    surrogate = (sign_a * b + sign_b * a) / 2
+    value = ((a - target).abs() + (b - target).abs()) / 2
+    return value.detach() + surrogate - surrogate.detach()
+
+
+def _abs_error(pred: torch.Tensor, target: torch.Tensor, independent: torch.Tensor | None) -> torch.Tensor:
+    return (pred - target).abs() if independent is None else independent_abs(pred, independent, target)
+
+
+def foreground_l1(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, target_mask: torch.Tensor,
+                  independent: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean L1 over foreground pixels; images (B, H, W, 3) in the same space, mask (B, H, W). ``independent``: a
+    second render of ``pred_rgb``'s with other MC samples (:func:`independent_abs`)."""
     m = target_mask.unsqueeze(-1)
-    return ((pred_rgb - target_rgb * m).abs() * m).sum() / (3 * m.sum()).clamp_min(1)
+    return (_abs_error(pred_rgb, target_rgb * m, independent) * m).sum() / (3 * m.sum()).clamp_min(1)
 
 
 def soft_iou_loss(soft_mask: torch.Tensor, target_mask: torch.Tensor) -> torch.Tensor:
@@ -45,15 +62,20 @@ def soft_iou_loss(soft_mask: torch.Tensor, target_mask: torch.Tensor) -> torch.T
     return (1 - inter / union.clamp_min(1e-6)).mean()
 
 
-def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int = 3) -> torch.Tensor:
-    """L1 between image gradients at several scales: rewards sharp, aligned texture detail."""
+def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int = 3,
+                  independent: torch.Tensor | None = None) -> torch.Tensor:
+    """L1 between image gradients at several scales: rewards sharp, aligned texture detail. ``independent``: as in
+    :func:`foreground_l1`."""
     p, t = pred_rgb.permute(0, 3, 1, 2), target_rgb.permute(0, 3, 1, 2)
+    q = None if independent is None else independent.permute(0, 3, 1, 2)
     total = p.new_zeros(())
     for s in range(scales):
         if s:
             p, t = F.avg_pool2d(p, 2), F.avg_pool2d(t, 2)
+            q = None if q is None else F.avg_pool2d(q, 2)
         for dim in (2, 3):
-            total = total + (torch.diff(p, dim=dim) - torch.diff(t, dim=dim)).abs().mean()
+            q_diff = None if q is None else torch.diff(q, dim=dim)
+            total = total + _abs_error(torch.diff(p, dim=dim), torch.diff(t, dim=dim), q_diff).mean()
     return total / scales
 
 

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import partial
 
 import torch
 
@@ -80,15 +81,17 @@ def batch_pairing(config: TrainConfig) -> str:
 
 
 def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
-               laplacian) -> tuple[dict, dict]:
+               laplacian, independent_rgb: torch.Tensor | None = None) -> tuple[dict, dict]:
     """({term: value}, {term: weight}): eq. 8's image terms on the renders ``out`` against ``target``, the
-    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set."""
+    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set.
+    ``independent_rgb``: the same renders with other MC samples (``mc_loss_samples`` "independent")."""
     rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
+    other = None if independent_rgb is None else hdr_srgb(independent_rgb)
     terms = {
-        "image": foreground_l1(rgb, target_rgb, target[..., 3]),
+        "image": foreground_l1(rgb, target_rgb, target[..., 3], independent=other),
         "iou": soft_iou_loss(out.silhouette, target[..., 3]),
         "laplacian": laplacian_smoothness(pred.verts, laplacian) / pred.config.template_radius ** 2,
-        "gradient": gradient_loss(rgb, target_rgb * target[..., 3:]),
+        "gradient": gradient_loss(rgb, target_rgb * target[..., 3:], independent=other),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
     if config.light_supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
@@ -124,21 +127,25 @@ def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, mat
     return RenderOutput(torch.cat([sky.rgb + sun.rgb, sky.image[..., 3:]], -1), frags, g)
 
 
-def render_sky_and_sun(renderer: Renderer, meshes, cameras: Cameras, material, light: tuple[EnvMap, SGLight]) -> RenderOutput:
+def render_sky_and_sun(renderer: Renderer, meshes, cameras: Cameras, material, light: tuple[EnvMap, SGLight],
+                       second: Renderer | None = None) -> RenderOutput | tuple[RenderOutput, torch.Tensor]:
     """The render under MC's probe sun (:meth:`Prediction.sky_and_sun`): the sky's grid shaded by ``renderer``'s MC,
     the sun's SG lobe in closed form (the SG shading of the paper) on the same G-buffer. Shading is linear in the
-    light, so the image is the whole light's; the sun's part and its gradient carry no sampling noise or bias."""
+    light, so the image is the whole light's; the sun's part and its gradient carry no sampling noise or bias.
+    ``second``: an MC renderer with other samples; then also the RGB of the same render shaded by it."""
     sky, sun = light
     frags, g = renderer.gbuffer(meshes, cameras, material)
     lit_by_sky = renderer.shade(frags, g, sky)
     lit_by_sun = Renderer("sg", raster_settings=renderer.raster_settings).shade(frags, g, sun)
-    return RenderOutput(torch.cat([lit_by_sky.rgb + lit_by_sun.rgb, lit_by_sky.image[..., 3:]], -1), frags, g)
+    out = RenderOutput(torch.cat([lit_by_sky.rgb + lit_by_sun.rgb, lit_by_sky.image[..., 3:]], -1), frags, g)
+    return out if second is None else (out, second.shade(frags, g, sky).rgb + lit_by_sun.rgb)
 
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
-                     iteration: int | None = None) -> tuple[torch.Tensor, dict, dict]:
+                     iteration: int | None = None, second: Renderer | None = None) -> tuple[torch.Tensor, dict, dict]:
     """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
-    drives the curricula (None: the trained model, full detail)."""
+    drives the curricula (None: the trained model, full detail). ``second``: the MC renderer with other samples
+    that ``mc_loss_samples`` "independent" asks for."""
     img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
     b, s = img.shape[0], img.shape[2]
     flat = img.reshape(b * 2, s, s, 4)
@@ -161,9 +168,12 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         render = render_sun_on_held_surface
     elif config.resolved_sun_lobe() == "probe":  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
         render, light = render_sky_and_sun, lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
+        if config.mc_loss_samples == "independent":
+            render = partial(render_sky_and_sun, second=second)
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
+    out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
-    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian)
+    terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, independent_rgb)
     if config.shape_supervision:  # each prediction's normals in its own input view against the GT mesh's there
         own = renderer.render_normals(pred.meshes(), views).image
         terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))

@@ -80,6 +80,7 @@ def _setup_distributed():
     return 0, 1
 
 
+SECOND_SAMPLES_SEED = 1_000_003  # offsets the seeds of mc_loss_samples' second renders from every run's first ones
 # settings a resumed run may change: how long it trains and how it reports, not what it trains
 CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint_every", "threads", "compile", "out",
                         "device")
@@ -160,7 +161,9 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True,  # MC noise differs per
                                  spp=config.training_spp(it))  # iteration, reproducibly
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, batch_pairing(config))
-        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it)
+        second = (make_renderer(config, seed=SECOND_SAMPLES_SEED + config.seed * 7919 + it, training=True,
+                                spp=config.training_spp(it)) if config.mc_loss_samples == "independent" else None)
+        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it, second)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
         total.backward()

@@ -13,8 +13,8 @@ from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
-from pipelines.losses import (SUN_TARGET_KAPPA, albedo_detail, darker_view_albedo_loss, normal_loss, roughness_floor,
-                              sun_direction_loss, with_albedo_detail)
+from pipelines.losses import (SUN_TARGET_KAPPA, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
+                              independent_abs, normal_loss, roughness_floor, sun_direction_loss, with_albedo_detail)
 from pipelines.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
 from pipelines.runs import make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
@@ -616,17 +616,55 @@ def test_spp_start_sets_mcs_samples_over_the_first_fifth_and_labels_a_run():
         TrainConfig(spp_start=32).validate()
 
 
-def test_an_mc_run_renders_with_spp_start_then_spp(tiny_glossy, tmp_path, monkeypatch):
+def test_an_mc_run_renders_with_spp_start_then_spp_and_with_other_samples_when_asked(tiny_glossy, tmp_path,
+                                                                                      monkeypatch):
     import pipelines.train as training
     used = []
 
-    def renderer_of(config, seed, training=False, spp=None):  # the run's own renderer, its samples recorded
-        used.append(spp)
+    def renderer_of(config, seed, training=False, spp=None):  # the run's own renderer, its seed and samples recorded
+        used.append((seed, spp))
         return make_renderer(config, seed, training, spp)
     monkeypatch.setattr(training, "make_renderer", renderer_of)
-    train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4,
-                 compile=False), progress=False)
-    assert used == [4, 4] + [2] * 8
+    train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4, compile=False),
+          progress=False)
+    assert [spp for _, spp in used] == [4, 4] + [2] * 8
+    used.clear()
+    train(config(tiny_glossy, tmp_path / "independent", shading="mc", iterations=2, seed=1,
+                 mc_loss_samples="independent", compile=False), progress=False)
+    first, second = 7919, 7919 + training.SECOND_SAMPLES_SEED
+    assert used == [(first, 2), (second, 2), (first + 1, 2), (second + 1, 2)]
+
+
+def test_independent_samples_keep_the_l1_and_drop_its_pull_toward_less_noise():
+    # a render whose noise grows with a parameter s, its mean on the target: the L1 of one render has the expected
+    # gradient E|n| > 0 in s (training lowers the noise), the independent samples' 0 (the mean is already right)
+    torch.manual_seed(0)
+    target = torch.rand(4000, 1, 1, 3)
+    s = torch.tensor(0.1, requires_grad=True)
+    a, b = target + s * torch.randn_like(target), target + s * torch.randn_like(target)
+    mask = torch.ones(target.shape[:3])
+    shared = torch.autograd.grad(foreground_l1(a, target, mask), s, retain_graph=True)[0]
+    independent = torch.autograd.grad(foreground_l1(a, target, mask, independent=b), s, retain_graph=True)[0]
+    assert shared == pytest.approx((2 / torch.pi) ** 0.5, abs=0.02) and abs(independent) < 0.02
+    # the value is the two renders' mean L1, on the images and on their gradients
+    value = foreground_l1(a, target, mask, independent=b)
+    assert value.item() == pytest.approx((foreground_l1(a, target, mask) + foreground_l1(b, target, mask)).item() / 2)
+    image = lambda x: x.reshape(40, 10, 10, 3)  # noqa: E731
+    both = gradient_loss(image(a), image(target), independent=image(b))
+    assert both.item() == pytest.approx((gradient_loss(image(a), image(target)) +
+                                         gradient_loss(image(b), image(target))).item() / 2, rel=1e-5)
+    # each render's gradient is the other's sign
+    x, y = torch.tensor([1.0, -1.0], requires_grad=True), torch.tensor([-2.0, 3.0], requires_grad=True)
+    independent_abs(x, y, torch.zeros(2)).sum().backward()
+    assert x.grad.tolist() == [-0.5, 0.5] and y.grad.tolist() == [0.5, -0.5]
+
+
+def test_independent_samples_need_mcs_probe_sun_and_label_a_run():
+    assert TrainConfig.from_dict(dict(shading="mc", variant="independent-samples")).mc_loss_samples == "independent"
+    assert TrainConfig(shading="mc", mc_loss_samples="independent").label() == "mc_loss_samples=independent"
+    for wrong in (dict(), dict(shading="mc", sun_lobe="learned"), dict(shading="mc", light_head="global")):
+        with pytest.raises(ConfigError, match="mc_loss_samples"):
+            TrainConfig(mc_loss_samples="independent", **wrong).validate()
 
 
 def _mc_run_written_with_auto(data, out, field: str, trained: str):
