@@ -51,8 +51,8 @@ class TrainConfig:
                                 "each pixel's sign from one render and the derivative from a second with other samples "
                                 "(independent): with shared samples the expected loss holds the render's noise, which "
                                 "training lowers by blurring the light", ("shared", "independent"))
-    spp_start: int = _opt(0, "MC samples per pixel over the run's first fifth, then --spp (0: --spp throughout): "
-                          "at the start a few samples' gradient is biased, later it is not", minimum=0)
+    spp_start: int = _opt(0, "MC samples per pixel over the run's first fifth, then --spp (0: --spp throughout)",
+                          minimum=0)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
     w_image: float = _opt(1.0, "weight of the image L1 (eq. 8)", minimum=0.0)
     w_iou: float = _opt(1.0, "weight of the soft-silhouette IoU loss", minimum=0.0)
@@ -354,10 +354,10 @@ VARIANTS: dict[str, Variant] = {
     "sharp-sun": Variant("the probe head's sun lobe at least sharpness 20 (half its peak 15 degrees off its axis): MC's "
                          "closed-form sun had become a glow over half the sky (sharpness ~1, 80 % of the power)",
                          {"sun_min_sharpness": 20.0}, runs=()),
-    "spp32": Variant("MC trained at 32 samples per pixel instead of 8, whose gradient at the start of training is up "
-                     "to a third too large (the backbone's, the material head's)", {"spp": 32}, runs=()),
-    "spp32-start": Variant("MC trained at 32 samples per pixel over the run's first fifth, 8 after it: the bias of 8 "
-                           "samples' gradient at the start removed at 1.4x, not 3x, an 8-sample run's time",
+    "spp32": Variant("MC trained at 32 samples per pixel instead of 8, whose loss pays less for its render's noise "
+                     "(entry 31)", {"spp": 32}, runs=()),
+    "spp32-start": Variant("MC trained at 32 samples per pixel over the run's first fifth, 8 after it (the suns it forms "
+                           "fade into a glow by iteration 750: the start is not what 8 samples change)",
                            {"spp_start": 32}, runs=()),
     "independent-samples": Variant("MC's image losses with each pixel's sign from one render, the derivative from a "
                                    "second with other samples: no pull toward a low-noise (blurred) light",

@@ -145,7 +145,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
                      iteration: int | None = None, second: Renderer | None = None) -> tuple[torch.Tensor, dict, dict]:
     """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
     drives the curricula (None: the trained model, full detail). ``second``: the MC renderer with other samples
-    that ``mc_loss_samples`` "independent" asks for."""
+    that ``mc_loss_samples`` "independent" asks for (without it, one render)."""
     img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
     b, s = img.shape[0], img.shape[2]
     flat = img.reshape(b * 2, s, s, 4)
