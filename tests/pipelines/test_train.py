@@ -489,7 +489,7 @@ def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tin
     before = (out / "checkpoint.pt").read_bytes()
     import pipelines.objective
 
-    monkeypatch.setattr(pipelines.objective, "gradient_loss", lambda *a: torch.tensor(float("nan")))
+    monkeypatch.setattr(pipelines.objective, "gradient_loss", lambda *a, **kw: torch.tensor(float("nan")))
     with pytest.raises(FloatingPointError, match="total loss became nan"):
         train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8), resume=True, progress=False)
     assert (out / "checkpoint.pt").read_bytes() == before
