@@ -76,7 +76,7 @@ def build_parser() -> Parser:
     ap.add_argument("--iterations", type=positive_int, default=10, metavar="N", help="timed iterations")
     ap.add_argument("--warmup", type=non_negative_int, default=2, metavar="N",
                     help="untimed iterations first (torch.compile compiles here)")
-    ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.config to time "
+    ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.variants to time "
                     "(default: the default model)")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the step runs (default: cpu)")
     ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
