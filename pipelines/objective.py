@@ -167,9 +167,8 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     if config.resolved_sun_lobe() == "probe" and config.shading in SG_LIGHT:  # the SG sun's floor lobe: a held surface
         render = render_sun_on_held_surface
     elif config.resolved_sun_lobe() == "probe":  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
-        render, light = render_sky_and_sun, lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
-        if config.mc_loss_samples == "independent":
-            render = partial(render_sky_and_sun, second=second)
+        render = partial(render_sky_and_sun, second=second)  # train passes a second renderer where the config asks
+        light = lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
