@@ -112,7 +112,9 @@ def camera_ray_directions(height: int, width: int, fov_rad, device=None, dtype=t
 def direction_to_equirect_uv(d: torch.Tensor) -> torch.Tensor:
     """Unit directions (..., 3) -> (u, v) in [0, 1]^2, u along columns, v = rows from the top."""
     u = 0.5 - torch.atan2(d[..., 1], d[..., 0]) / (2 * math.pi)
-    v = torch.acos(d[..., 2].clamp(-1.0, 1.0)) / math.pi
+    # atan2 of (distance from the pole axis, z), not acos(z): exact for the slightly non-unit vectors that
+    # float32 normalisation leaves, and well conditioned near the poles where acos loses ~1e-4
+    v = torch.atan2(torch.hypot(d[..., 0], d[..., 1]), d[..., 2]) / math.pi
     return torch.stack([u % 1.0, v], -1)
 
 

@@ -70,8 +70,12 @@ def test_equirect_mapping_matches_blender():
     assert torch.allclose(uv[1], torch.tensor([0.25, 0.5]))
     assert torch.allclose(uv[2], torch.tensor([0.75, 0.5]))
     assert abs(uv[3, 1]) < 1e-6
-    dirs = torch.nn.functional.normalize(torch.randn(100, 3), dim=-1)
-    assert torch.allclose(conv.equirect_uv_to_direction(conv.direction_to_equirect_uv(dirs)), dirs, atol=1e-5)
+    # many float32-normalised directions, some a hair from the poles (where acos(z) was off by 3e-4)
+    dirs = torch.randn(100_000, 3, generator=torch.Generator().manual_seed(1))
+    dirs[:100, :2] *= 1e-4
+    dirs = torch.nn.functional.normalize(dirs, dim=-1)
+    torch.testing.assert_close(conv.equirect_uv_to_direction(conv.direction_to_equirect_uv(dirs)), dirs,
+                               atol=2e-6, rtol=0)
     assert abs(conv.equirect_solid_angles(16, 32).sum() * 32 - 4 * math.pi) < 1e-4
 
 
