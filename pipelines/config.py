@@ -49,10 +49,11 @@ class TrainConfig:
                             "to zero over the last third (the weights settle instead of jittering at the end), or "
                             "constant throughout", ("cosine-tail", "constant"))
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
-    mc_loss_samples: str = _opt("shared", "MC's image losses: their gradient from the render they score (shared), or "
+    mc_loss_samples: str = _opt("auto", "MC's image losses: their gradient from the render they score (shared), or "
                                 "each pixel's sign from one render and the derivative from a second with other samples "
                                 "(independent): with shared samples the expected loss holds the render's noise, which "
-                                "training lowers by blurring the light", ("shared", "independent"))
+                                "training lowers by blurring the light. auto: independent under MC's probe sun, else "
+                                "shared", ("auto", "shared", "independent"))
     spp_start: int = _opt(0, "MC samples per pixel over the run's first fifth, then --spp (0: --spp throughout)",
                           minimum=0)
     image_size: int = _opt(64, "image side the model sees (a multiple of 16; the dataset's resolution)", minimum=16)
@@ -178,7 +179,7 @@ class TrainConfig:
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
-        if self.mc_loss_samples == "independent" and (self.shading != "mc" or self.resolved_sun_lobe() != "probe"):
+        if self.mc_loss_samples == "independent" and not self._has_mc_probe_sun():
             raise ConfigError("mc_loss_samples 'independent' shades MC's sky twice under its probe sun; use it with "
                               "--shading mc and the probe sun (--sun-lobe probe or auto, with the probe light head)")
         if self.spp_start and self.shading != "mc":
@@ -252,6 +253,17 @@ class TrainConfig:
             return self.sun_axis
         return "cue-on-metal" if self.resolved_sun_lobe() == "probe" else "head"
 
+    def _has_mc_probe_sun(self) -> bool:
+        return self.shading == "mc" and self.resolved_sun_lobe() == "probe"
+
+    def resolved_mc_loss_samples(self) -> str:
+        """Where MC's image losses take their gradient. 'auto': from a second render with independent samples under
+        MC's probe sun (the default since 2026-11-27, thirteenth session: at 8 samples per pixel the shared samples'
+        loss blurred the glossy sun into a glow), else from the render they score (nothing else has a second)."""
+        if self.mc_loss_samples != "auto":
+            return self.mc_loss_samples
+        return "independent" if self._has_mc_probe_sun() else "shared"
+
     def label(self) -> str:
         """'' for the default model, else the variant's name (or, for a run configured by hand, its
         non-default experiment fields, e.g. 'light_colour=free'). Tables hold default models only."""
@@ -263,14 +275,15 @@ class TrainConfig:
     def resolved_dict(self) -> dict:
         """The fields with 'auto' choices resolved: what the run trains, whichever way it was written."""
         return {**self.to_dict(), "light_head": self.resolved_light_head(), "sun_lobe": self.resolved_sun_lobe(),
-                "sun_cue": self.resolved_sun_cue(), "sun_axis": self.resolved_sun_axis()}
+                "sun_cue": self.resolved_sun_cue(), "sun_axis": self.resolved_sun_axis(),
+                "mc_loss_samples": self.resolved_mc_loss_samples()}
 
 
 # What a run whose config.json was written before a field existed was trained with (the field's value then, not
 # today's default), so that an old run reads, is labelled and is resumed as what it was.
 VALUES_BEFORE_FIELD = {"light_head": "global", "probe_start": "colour", "probe_samples": "texels",
                        "input_range": "clipped", "cross_view_light": "view", "lr_schedule": "constant",
-                       "sun_lobe": "learned", "sun_cue": "all", "sun_axis": "head"}
+                       "sun_lobe": "learned", "sun_cue": "all", "sun_axis": "head", "mc_loss_samples": "shared"}
 
 PRESETS = {
     "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min

@@ -162,7 +162,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
                                  spp=config.training_spp(it))  # iteration, reproducibly
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, batch_pairing(config))
         second = (make_renderer(config, seed=SECOND_SAMPLES_SEED + config.seed * 7919 + it, training=True,
-                                spp=config.training_spp(it)) if config.mc_loss_samples == "independent" else None)
+                                spp=config.training_spp(it)) if config.resolved_mc_loss_samples() == "independent" else None)
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it, second)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)

@@ -81,16 +81,18 @@ VARIANTS: dict[str, Variant] = {
                            runs=(("metallic", 0), ("metallic", 1), ("metallic", 2), ("glossy", 0), ("glossy", 1),
                                  ("glossy", 2))),
     "sharp-sun": Variant("the probe head's sun lobe at least sharpness 20 (half its peak 15 degrees off its axis): MC's "
-                         "closed-form sun had become a glow over half the sky (sharpness ~1, 80 % of the power)",
-                         {"sun_min_sharpness": 20.0}, runs=()),
+                         "closed-form sun had become a glow over half the sky (sharpness ~1, 80 % of the power; "
+                         "shared samples, as measured)",
+                         {"sun_min_sharpness": 20.0, "mc_loss_samples": "shared"}, runs=()),
     "spp32": Variant("MC trained at 32 samples per pixel instead of 8, whose loss pays less for its render's noise "
-                     "(entry 31)", {"spp": 32}, runs=()),
+                     "(entry 31; shared samples, as measured)", {"spp": 32, "mc_loss_samples": "shared"}, runs=()),
     "spp32-start": Variant("MC trained at 32 samples per pixel over the run's first fifth, 8 after it (the suns it forms "
-                           "fade into a glow by iteration 750: the start is not what 8 samples change)",
-                           {"spp_start": 32}, runs=()),
-    "independent-samples": Variant("MC's image losses with each pixel's sign from one render, the derivative from a "
-                                   "second with other samples: no pull toward a low-noise (blurred) light",
-                                   {"mc_loss_samples": "independent"}, runs=()),
+                           "fade into a glow by iteration 750: the start is not what 8 samples change; shared samples, "
+                           "as measured)", {"spp_start": 32, "mc_loss_samples": "shared"}, runs=()),
+    "shared-samples": Variant("MC's image losses with each pixel's sign and derivative from the render they score, whose "
+                              "expected loss holds its own noise, which training lowers by blurring the light into a "
+                              "glow (MC's default until 2026-11-27, thirteenth session)",
+                              {"mc_loss_samples": "shared"}, runs=()),
     "all-pixels-sun": Variant("the SG sun read off every pixel the surface covers, grazing ones at the silhouette "
                               "included (which mirror the direction behind the object; the default until 2026-11-26, "
                               "late)", {"sun_cue": "all"},

@@ -11,7 +11,7 @@ from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.config import ConfigError, TrainConfig
+from pipelines.config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
 from pipelines.losses import (SUN_TARGET_KAPPA, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
                               independent_abs, normal_loss, roughness_floor, sun_direction_loss, with_albedo_detail)
@@ -334,7 +334,6 @@ def test_resuming_a_finished_run_leaves_its_folder_as_it_was(tiny_glossy, tmp_pa
 def test_a_run_written_before_a_field_reads_as_what_it_was_trained_with(tmp_path):
     """A config.json from before lr_schedule and cross_view_light existed loads with the values the run had then
     (a constant rate, eq. 8's cross-view light), is labelled so, and refuses to resume under today's defaults."""
-    from pipelines.config import VALUES_BEFORE_FIELD
     from pipelines.runs import load_config
     from pipelines.train import check_resumable
 
@@ -625,12 +624,12 @@ def test_an_mc_run_renders_with_spp_start_then_spp_and_with_other_samples_when_a
         used.append((seed, spp))
         return make_renderer(config, seed, training, spp)
     monkeypatch.setattr(training, "make_renderer", renderer_of)
-    train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4, compile=False),
-          progress=False)
-    assert [spp for _, spp in used] == [4, 4] + [2] * 8
+    train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4, mc_loss_samples="shared",
+                 compile=False), progress=False)
+    assert [spp for _, spp in used] == [4, 4] + [2] * 8  # one renderer per iteration: the shared samples
     used.clear()
-    train(config(tiny_glossy, tmp_path / "independent", shading="mc", iterations=2, seed=1,
-                 mc_loss_samples="independent", compile=False), progress=False)
+    train(config(tiny_glossy, tmp_path / "independent", shading="mc", iterations=2, seed=1, compile=False),
+          progress=False)  # MC's default: a second renderer per iteration, its seeds offset
     first, second = 7919, 7919 + training.SECOND_SAMPLES_SEED
     assert used == [(first, 2), (second, 2), (first + 1, 2), (second + 1, 2)]
 
@@ -659,12 +658,19 @@ def test_independent_samples_keep_the_l1_and_drop_its_pull_toward_less_noise():
     assert x.grad.tolist() == [-0.5, 0.5] and y.grad.tolist() == [0.5, -0.5]
 
 
-def test_independent_samples_need_mcs_probe_sun_and_label_a_run():
-    assert TrainConfig.from_dict(dict(shading="mc", variant="independent-samples")).mc_loss_samples == "independent"
-    assert TrainConfig(shading="mc", mc_loss_samples="independent").label() == "mc_loss_samples=independent"
-    for wrong in (dict(), dict(shading="mc", sun_lobe="learned"), dict(shading="mc", light_head="global")):
+def test_independent_samples_are_mcs_default_under_its_probe_sun_and_need_it():
+    assert TrainConfig(shading="mc").resolved_mc_loss_samples() == "independent"  # 'auto', since 2026-11-27
+    assert TrainConfig(shading="mc", mc_loss_samples="independent").label() == ""  # the default, written out
+    shared = TrainConfig.from_dict(dict(shading="mc", variant="shared-samples"))
+    assert shared.resolved_mc_loss_samples() == "shared" and shared.label() == "shared-samples"
+    assert TrainConfig(shading="mc", mc_loss_samples="shared").label() == "mc_loss_samples=shared"
+    for other in (dict(), dict(shading="mc", sun_lobe="learned"), dict(shading="mc", light_head="global")):
+        assert TrainConfig(**other).resolved_mc_loss_samples() == "shared"  # nothing else has a second render
         with pytest.raises(ConfigError, match="mc_loss_samples"):
-            TrainConfig(mc_loss_samples="independent", **wrong).validate()
+            TrainConfig(mc_loss_samples="independent", **other).validate()
+    # an MC run written before the field was trained with shared samples, and reads so
+    old = {k: v for k, v in TrainConfig(shading="mc").to_dict().items() if k != "mc_loss_samples"}
+    assert TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **old}).resolved_mc_loss_samples() == "shared"
 
 
 def _mc_run_written_with_auto(data, out, field: str, trained: str):
@@ -686,7 +692,7 @@ def test_an_mc_run_from_when_auto_meant_the_global_head_loads_labels_and_resumes
     old = tmp_path / "old"
     run = _mc_run_written_with_auto(tiny_glossy, old, "light_head", "global")
     assert run.config.light_head == "global" and run.model.config.light_head == "global"
-    assert run.config.label() == "light_head=global, sun_lobe=learned, sun_cue=all, sun_axis=head"
+    assert run.config.label() == "light_head=global, sun_lobe=learned, mc_loss_samples=shared, sun_cue=all, sun_axis=head"
     with pytest.raises(DataError, match="light_head: 'global' -> 'auto'"):
         train(config(tiny_glossy, old, shading="mc", iterations=4), resume=True, progress=False)
     train(config(tiny_glossy, old, shading="mc", light_head="global", iterations=4), resume=True, progress=False)
@@ -719,7 +725,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
     old = tmp_path / "mc-learned-sun"
     run = _mc_run_written_with_auto(tiny_glossy, old, "sun_lobe", "learned")
     assert run.config.sun_lobe == "learned" and run.model.config.sun_lobe == "learned"
-    assert run.config.label() == "sun_lobe=learned, sun_cue=all, sun_axis=head"
+    assert run.config.label() == "sun_lobe=learned, mc_loss_samples=shared, sun_cue=all, sun_axis=head"
     train(config(tiny_glossy, old, shading="mc", sun_lobe="learned", iterations=4), resume=True, progress=False)
 
 
