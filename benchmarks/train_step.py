@@ -23,7 +23,7 @@ from dibrpp.mesh import uniform_laplacian
 from pipelines.config import ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
 from pipelines.objective import multiview_losses
-from pipelines.runs import make_model, make_optimizer, make_renderer
+from pipelines.runs import make_model, make_optimizer, step_renderers
 
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
@@ -51,7 +51,8 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
         t0 = now()
         batch = data.batch(it, config.batch_objects, config.seed)
         t1 = now()
-        total, _, _ = multiview_losses(model, make_renderer(config, seed=it, training=True), batch, config, laplacian)
+        renderer, second = step_renderers(config, it)  # as train shades a step, second samples included
+        total, _, _ = multiview_losses(model, renderer, batch, config, laplacian, it, second)
         t2 = now()
         opt.zero_grad(set_to_none=True)
         total.backward()

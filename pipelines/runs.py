@@ -212,3 +212,17 @@ def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: i
     settings = RasterSettings(cull_backfaces=True, visibility=config.visibility, filter_width=filter_width)
     return Renderer(config.shading, spp=spp or config.spp, seed=seed, raster_settings=settings,
                     compile=config.compile)
+
+
+SECOND_SAMPLES_SEED = 1_000_003  # offsets the seeds of the second samples' renders from every run's first ones
+
+
+def step_renderers(config: TrainConfig, iteration: int) -> tuple[Renderer, Renderer | None]:
+    """The renderers of training step ``iteration`` (what train and the step benchmark shade with): MC's samples
+    differ per iteration, reproducibly, at the config's samples for that iteration; the second, with independent
+    samples, where MC's image losses take their gradient from one (``resolved_mc_loss_samples``), else None."""
+    seed, spp = config.seed * 7919 + iteration, config.training_spp(iteration)
+    first = make_renderer(config, seed=seed, training=True, spp=spp)
+    if config.resolved_mc_loss_samples() != "independent":
+        return first, None
+    return first, make_renderer(config, seed=SECOND_SAMPLES_SEED + seed, training=True, spp=spp)

@@ -37,7 +37,7 @@ from .config import (PRESETS, VALUES_BEFORE_FIELD, ConfigError, TrainConfig, add
                      describe_variants, variant_runs)
 from .dataset import TrainingViews
 from .objective import batch_pairing, multiview_losses
-from .runs import load_checkpoint, make_model, make_optimizer, make_renderer, save_checkpoint
+from .runs import load_checkpoint, make_model, make_optimizer, save_checkpoint
 
 def check_finite(terms: dict) -> None:
     for name, value in terms.items():
@@ -80,7 +80,6 @@ def _setup_distributed():
     return 0, 1
 
 
-SECOND_SAMPLES_SEED = 1_000_003  # offsets the seeds of mc_loss_samples' second renders from every run's first ones
 # settings a resumed run may change: how long it trains and how it reports, not what it trains
 CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint_every", "threads", "compile", "out",
                         "device")
@@ -158,11 +157,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
                desc=f"{Path(config.dataset).name}/{config.shading}", unit="it")
     t_start = time.perf_counter()
     for it in bar:
-        renderer = make_renderer(config, seed=config.seed * 7919 + it, training=True,  # MC noise differs per
-                                 spp=config.training_spp(it))  # iteration, reproducibly
+        renderer, second = runs.step_renderers(config, it)
         batch = data.batch(it, config.batch_objects, config.seed, rank, world, batch_pairing(config))
-        second = (make_renderer(config, seed=SECOND_SAMPLES_SEED + config.seed * 7919 + it, training=True,
-                                spp=config.training_spp(it)) if config.resolved_mc_loss_samples() == "independent" else None)
         total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it, second)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)

@@ -617,20 +617,20 @@ def test_spp_start_sets_mcs_samples_over_the_first_fifth_and_labels_a_run():
 
 def test_an_mc_run_renders_with_spp_start_then_spp_and_with_other_samples_when_asked(tiny_glossy, tmp_path,
                                                                                       monkeypatch):
-    import pipelines.train as training
+    import pipelines.runs as runs
     used = []
 
     def renderer_of(config, seed, training=False, spp=None):  # the run's own renderer, its seed and samples recorded
         used.append((seed, spp))
         return make_renderer(config, seed, training, spp)
-    monkeypatch.setattr(training, "make_renderer", renderer_of)
+    monkeypatch.setattr(runs, "make_renderer", renderer_of)  # step_renderers makes each step's renderers
     train(config(tiny_glossy, tmp_path / "run", shading="mc", iterations=10, spp_start=4, mc_loss_samples="shared",
                  compile=False), progress=False)
     assert [spp for _, spp in used] == [4, 4] + [2] * 8  # one renderer per iteration: the shared samples
     used.clear()
     train(config(tiny_glossy, tmp_path / "independent", shading="mc", iterations=2, seed=1, compile=False),
           progress=False)  # MC's default: a second renderer per iteration, its seeds offset
-    first, second = 7919, 7919 + training.SECOND_SAMPLES_SEED
+    first, second = 7919, 7919 + runs.SECOND_SAMPLES_SEED
     assert used == [(first, 2), (second, 2), (first + 1, 2), (second + 1, 2)]
 
 
