@@ -1,8 +1,9 @@
 """Where a run's light loses the sun: ``python -m pipelines.diagnose_light --run runs/metallic/sg-seed0``.
 
-On the test views with a dominant light, the direction error (median, share within 25 and 45 degrees) of the
-sources below, over all those views and on each env map apart (its light's elevation: the test split holds few
-sunny maps, and how high the sun stands decides where a mirror-like car shows it):
+On the test views with a dominant light (or those of another dataset: ``--dataset DIR --split all``), the direction
+error (median, share within 25 and 45 degrees) of the sources below, over all those views, by how high their light
+stands (how high the sun stands decides where a mirror-like car shows it) and on each env map apart (where there
+are few):
 
 - the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power, and (the
   probe sun) that lobe without the learnt shift the head adds to the cue's place (as ``sun_axis`` "cue" has it;
@@ -144,13 +145,19 @@ def consensus_directions(sums: torch.Tensor, sample: torch.Tensor) -> dict:
     return {"one view": unit(sums), "two views": unit(sums + sums[nxt]), "all views": unit(total)}
 
 
-def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[list]]:
-    """(rows over all sunny test views, the by-map table's header, its rows: each source's median error and share
-    within 25 degrees on each sunny env map, whose GT sun elevation the header gives)."""
+def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
+             split: str = "test") -> tuple[list[list], list[str], list[list], list[str], list[list]]:
+    """(rows over all sunny views of the run's test split (or ``dataset``'s ``split``), the by-map table's header,
+    its rows: each source's median error and share within 25 degrees on each sunny env map, whose GT sun elevation
+    the header gives; the by-elevation table's header and rows: the same, and the signed elevation error, over the
+    views whose GT light stands in each band of ELEVATION_BANDS)."""
     loaded = load_run(run)
     model, config = loaded.model, loaded.config
     probe = model.config.light_head == "probe"
-    ds = MultiViewDataset(config.dataset, split="test", views_per_item=1)
+    dataset = dataset or config.dataset
+    if split == "all" and Path(dataset).resolve() == Path(config.dataset).resolve():
+        raise DataError(f"{run} trained on {dataset}: --split all would count the samples it trained on; use --split test")
+    ds = MultiViewDataset(dataset, split=split, views_per_item=1)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
     errors, lifts, shares, probes, maps, elevations, normals = {}, {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
@@ -244,7 +251,7 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
             row.append(f"{v.nanmedian():.1f}° ({int((~v.isnan()).sum())} views)")
     for k, v in errors.items():
         if not len(v):
-            raise DataError(f"{run}: no test view of {config.dataset} has a dominant light (a sun, a lamp) to place")
+            raise DataError(f"{run}: no {split} view of {dataset} has a dominant light (a sun, a lamp) to place")
         lift = f"{lifts[k].median():+.1f}" if k in lifts else ""  # the consensus rows are not per view
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
                      f"{100 * (v <= 45).float().mean():.0f} %", lift])
@@ -256,7 +263,28 @@ def diagnose(run: Path, stride: int = 3) -> tuple[list[list], list[str], list[li
     if probes:
         rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
             f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", "", ""])
-    return rows, header, by_map
+    return rows, header, by_map, *by_elevation(errors, lifts, elevations)
+
+
+# bands of the GT light's elevation (degrees): how high the sun stands decides where a mirror-like car shows it
+ELEVATION_BANDS = ((-90, 20), (20, 35), (35, 50), (50, 90))
+MAX_MAP_COLUMNS = 8  # a table by map beyond this many maps is printed as the table by elevation only
+
+
+def by_elevation(errors: dict, lifts: dict, elevations: torch.Tensor) -> tuple[list[str], list[list]]:
+    """The by-elevation table: per source (rows) and band of the GT light's elevation (columns), the median
+    direction error, the share within 25 degrees and (per-view sources) the median signed elevation error."""
+    header, rows = ["sunny views by their light's elevation: median (≤ 25 %, elevation error)"], [[k] for k in errors]
+    for lo, hi in ELEVATION_BANDS:
+        on = (elevations >= lo) & (elevations < hi)
+        header.append(f"light {max(lo, 0)}–{hi}° high, {int(on.sum())} views")
+        for row, (k, v) in zip(rows, errors.items()):
+            if not on.any():
+                row.append("")
+                continue
+            lift = f", {lifts[k][on].median():+.1f}°" if k in lifts else ""
+            row.append(f"{v[on].median():.1f}° ({100 * (v[on] <= 25).float().mean():.0f} %{lift})")
+    return header, rows
 
 
 def main(argv=None) -> int:
@@ -264,15 +292,30 @@ def main(argv=None) -> int:
     ap.add_argument("--run", required=True, metavar="DIR", help="a run folder")
     ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
                     help="every N-th test view of each object, as make eval (default: 3)")
+    ap.add_argument("--dataset", metavar="DIR",
+                    help="diagnose on this dataset instead of the one the run was trained on (e.g. make "
+                         "data-metallic-sunny's, with --split all)")
+    ap.add_argument("--split", choices=("test", "train", "all"), default="test",
+                    help="the views to diagnose: test, train or all (every sample of a --dataset no run trained on) "
+                         "(default: test)")
     args = ap.parse_args(argv)
+    if args.split == "all" and not args.dataset:
+        ap.error("--split all reads every sample, the training ones included; use it with a --dataset the run did not "
+                 "train on")
     try:
-        rows, by_map_header, by_map = diagnose(run_folder(Path(args.run)), args.view_stride)
+        rows, by_map_header, by_map, elevation_header, by_band = diagnose(
+            run_folder(Path(args.run)), args.view_stride, args.dataset, args.split)
     except DataError as e:
         ap.error(str(e))
-    print(markdown_table(["sunny test views", "direction median (°)", "≤ 25°", "≤ 45°",
+    print(markdown_table([f"sunny {args.split} views", "direction median (°)", "≤ 25°", "≤ 45°",
                           "elevation error (median, signed °)"], rows))
     print()
-    print(markdown_table(by_map_header, by_map))
+    print(markdown_table(elevation_header, by_band))
+    print()
+    if len(by_map_header) - 1 <= MAX_MAP_COLUMNS:
+        print(markdown_table(by_map_header, by_map))
+    else:
+        print(f"({len(by_map_header) - 1} sunny maps: too many for a table by map; the table by elevation above)")
     return 0
 
 

@@ -103,6 +103,13 @@ def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, 
     assert status == 0 and "the run's sun lobe alone" in text.out and "a sun read off the cue" in text.out, text.err
     assert "without its learnt shift" in text.out and "elevation error" in text.out
     assert "° high" in text.out and "views of each test map" in text.out  # the by-map table
+    assert "by their light's elevation" in text.out  # the by-elevation table
+    with pytest.raises(SystemExit) as exit_:  # --split all counts the samples it trained on without a --dataset
+        diagnose_light.main(["--run", str(out), "--split", "all"])
+    assert exit_.value.code == 2 and "--dataset" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:  # ... and on its own dataset
+        diagnose_light.main(["--run", str(out), "--dataset", str(tiny_glossy), "--split", "all"])
+    assert exit_.value.code == 2 and "trained on" in capsys.readouterr().err
     assert "each object's shape averaged over its views" in text.out
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--light-prior", str(tmp_path / "maps"),
                        "--out", str(tmp_path / "other"), "--no-progress"]) == 2
