@@ -303,6 +303,8 @@ def main(argv=None) -> int:
         ap.error("--split all reads every sample, the training ones included; use it with a --dataset the run did not "
                  "train on")
     try:
+        if args.dataset:  # a missing or broken --dataset: said before the run is loaded
+            MultiViewDataset(args.dataset, split=args.split, views_per_item=1)
         rows, by_map_header, by_map, elevation_header, by_band = diagnose(
             run_folder(Path(args.run)), args.view_stride, args.dataset, args.split)
     except DataError as e:

@@ -76,7 +76,7 @@ CLIS = [
     Cli("python -m datagen.prior_maps", "datagen.prior_maps:main", ["--out", "{out}", "--no-progress"],
         ("datagen.prior_maps:generate",), paths=dict(out="dir-out"), zero_ok=("seed",)),
     Cli("python -m pipelines.diagnose_light", "pipelines.diagnose_light:main", ["--run", "{run}"],
-        ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in")),
+        ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in", dataset="dir-in")),
     Cli("python -m pipelines.diagnose_shape", "pipelines.diagnose_shape:main", ["--dataset", "{data}"],
         ("pipelines.diagnose_shape:diagnose",), paths=dict(dataset="dir-in"), strings=("signals",)),
     Cli("python -m pipelines.light_prior", "pipelines.light_prior:main", ["--maps", "{data}"],
