@@ -261,7 +261,7 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
     if shares:
         rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", "", ""])
     if probes:
-        rows.append(["(rough-metal probe si-RMSE, all test views: " + ", ".join(
+        rows.append([f"(rough-metal probe si-RMSE, all {split} views read: " + ", ".join(
             f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", "", ""])
     return rows, header, by_map, *by_elevation(errors, lifts, elevations)
 
