@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: light-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps data eval train-ablations clean help
+.PHONY: light-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~5.5 h)"
@@ -41,6 +41,7 @@ help:
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
 	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, three SG runs, cross-evaluation (~45 min)"
+	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1 h)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -160,6 +161,25 @@ study-maps: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --variant light-supervised-probe --out $(RUNS)/glossy-maps200/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
 	@set -e; for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do \
 	  $(PY) -m pipelines.evaluate --runs $(RUNS)/glossy/$$r --dataset $(DATA)/glossy-maps200 --out results/eval-maps200; \
+	done
+
+# The input's resolution: the metallic set and 157 other metallic cars under skies (the larger sunny set of
+# docs/experiments.md entries 24-34) rendered at 32 x 32 as well as 64 x 64, SG trained at 32 x 32, and each
+# resolution's run evaluated and diagnosed on its own sunny set (results/eval-res64, results/eval-res32).
+# Resumable at every step; run `make train-metallic` first for the 64 x 64 run. ~1 h on 2 cores.
+SUNNY_LARGE := --dataset metallic --outdoor-share 1 --num-objects 120 --num-envmaps 120 --seed 2
+study-resolution: $(VENV)/.installed
+	@test -f $(RUNS)/metallic/sg-seed0/checkpoint.pt || \
+	  { echo "error: no run $(RUNS)/metallic/sg-seed0; run 'make train-metallic' first"; exit 1; }
+	$(PY) -m datagen --dataset metallic --resolution 32 --out $(DATA)/metallic-32
+	$(PY) -m datagen $(SUNNY_LARGE) --out $(DATA)/metallic-sunny-large
+	$(PY) -m datagen $(SUNNY_LARGE) --resolution 32 --out $(DATA)/metallic-sunny-large-32
+	$(PY) -m pipelines.train --dataset $(DATA)/metallic-32 --shading sg --seed 0 --image-size 32 --out $(RUNS)/metallic-32/sg-seed0 --resume $(TRAIN_ARGS)
+	@set -e; for r in 64 32; do \
+	  run=$(RUNS)/metallic/sg-seed0; sunny=$(DATA)/metallic-sunny-large; \
+	  if [ $$r = 32 ]; then run=$(RUNS)/metallic-32/sg-seed0; sunny=$(DATA)/metallic-sunny-large-32; fi; \
+	  $(PY) -m pipelines.evaluate --runs $$run --dataset $$sunny --split all --out results/eval-res$$r; \
+	  $(PY) -m pipelines.diagnose_light --run $$run --dataset $$sunny --split all > results/eval-res$$r/diagnose_light.txt; \
 	done
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).

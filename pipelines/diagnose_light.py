@@ -238,7 +238,8 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
     rows, maps, elevations, normals = [], torch.cat(maps), torch.cat(elevations), torch.cat(normals)
     errors, lifts = {k: torch.cat(v) for k, v in errors.items()}, {k: torch.cat(v) for k, v in lifts.items()}
     normal_rows = ["normals' error (°), all pixels both surfaces cover",
-                   f"normals' error (°), the pixels whose GT mirror direction is within {metrics.SUN_PIXEL_DEG:.0f}° of the sun"]
+                   f"normals' error (°), the pixels whose GT mirror direction is within {metrics.SUN_PIXEL_DEG:.0f}° of the sun",
+                   "the GT normals' turn within a pixel (°) there: what a pixel's misplacement of the surface costs"]
     by_map = [[k] for k in errors] + [[k] for k in normal_rows]
     header = ["sunny views of each test map: median (≤ 25°)"]
     for m in maps.unique().tolist():
@@ -255,9 +256,10 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
         lift = f"{lifts[k].median():+.1f}" if k in lifts else ""  # the consensus rows are not per view
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
                      f"{100 * (v <= 45).float().mean():.0f} %", lift])
-    for name, v, mean in zip(normal_rows, normals.T, averaged.T):
+    for name, v, mean in zip(normal_rows[:2], normals.T, averaged.T):
         rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
                      f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", "", ""])
+    rows.append([f"({normal_rows[2]}: {float(normals[:, 2].nanmedian()):.1f})", "", "", "", ""])
     if shares:
         rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", "", ""])
     if probes:

@@ -222,9 +222,26 @@ def light_metrics(pred_light, gt_env, scene: "ProbeScene") -> dict:
 SUN_PIXEL_DEG = 10.0  # a pixel "mirrors the sun" where the GT surface's mirror direction is this close to it
 
 
+def normal_turn_deg(normals: torch.Tensor, weight: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, N) per covered pixel, the largest angle (degrees) between its normal and a covered 4-neighbour's: how far
+    the surface turns within one pixel, so what a pixel's misplacement costs there. normals (B, N, 3) unit, weight
+    (B, N) coverage (> 0.5: covered), N = size * size pixels; 0 where no neighbour is covered."""
+    n, covered = normals.view(-1, size, size, 3), weight.view(-1, size, size) > 0.5
+    turn = normals.new_zeros(n.shape[:3])
+    for dim in (1, 2):  # each pair of neighbours along rows, then columns
+        a, b = (slice(None),) * dim + (slice(1, None),), (slice(None),) * dim + (slice(None, -1),)
+        cos = (n[a] * n[b]).sum(-1).clamp(-1, 1)
+        pair = torch.rad2deg(torch.acos(cos)) * (covered[a] & covered[b])
+        turn[a] = torch.maximum(turn[a], pair)
+        turn[b] = torch.maximum(turn[b], pair)
+    return turn.view(weight.shape)
+
+
 def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
-    """(B, 2) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
-    pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3) (NaN if none)."""
+    """(B, 3) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
+    pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3); and how far the GT
+    surface turns within a pixel there (:func:`normal_turn_deg`, median): the error a pixel's misplacement of the
+    predicted surface costs at the sun's pixels. NaN where no pixel mirrors the sun."""
     radiance, alpha = rgba[..., :3], rgba[..., 3]
     pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
     gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
@@ -232,9 +249,10 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
     angle = angle_deg(pred_n, gt_n)
     both = (pred_w > 0.5) & (gt_w > 0.5)
     at_sun = both & (angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
+    turn = normal_turn_deg(gt_n, gt_w, cameras.resolution)
     nan = angle.new_tensor(float("nan"))
-    return torch.stack([torch.stack([a[m].median() if m.any() else nan for m in (b, s)])
-                        for a, b, s in zip(angle, both, at_sun)])
+    return torch.stack([torch.stack([a[m].median() if m.any() else nan for a, m in ((e, b), (e, s), (t, s))])
+                        for e, t, b, s in zip(angle, turn, both, at_sun)])
 
 
 def direction_summary(errors_deg: np.ndarray, samples: np.ndarray, resamples: int = 2000, seed: int = 0) -> dict:

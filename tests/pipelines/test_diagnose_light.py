@@ -83,6 +83,20 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
         heads["probe"](grid, torch.zeros(1, 4))
 
 
+def test_normal_turn_is_the_largest_angle_to_a_covered_neighbour():
+    """A 4 x 4 view whose left half faces +x and right half +y: the two columns at the break turn 90 degrees, the
+    others none; an uncovered neighbour does not count, and a pixel with none covered turns 0."""
+    from pipelines.metrics import normal_turn_deg
+    n = torch.zeros(1, 4, 4, 3)
+    n[..., :2, 0], n[..., 2:, 1] = 1.0, 1.0
+    turn = normal_turn_deg(n.view(1, 16, 3), torch.ones(1, 16), 4).view(4, 4)
+    torch.testing.assert_close(turn, torch.tensor([[0.0, 90.0, 90.0, 0.0]]).expand(4, 4))
+    covered = torch.ones(4, 4)
+    covered[:, 2] = 0.0  # the right half's break column uncovered: the left half's break sees no turn
+    turn = normal_turn_deg(n.view(1, 16, 3), covered.view(1, 16), 4).view(4, 4)
+    torch.testing.assert_close(turn, torch.zeros(4, 4))
+
+
 def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors_the_sun():
     """The same sphere as prediction and GT: no error anywhere; the sun straight back at the camera is mirrored by
     the pixels facing it, a sun straight behind the sphere by none (NaN); a sphere squashed in depth is wrong
@@ -93,8 +107,11 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     _, to_camera, _, weight = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])
     toward = torch.nn.functional.normalize((to_camera[0] * weight[0, :, None]).sum(0), dim=0)[None]
     err = normal_errors(sphere, [sphere], cams, rgba, toward)
-    assert err.shape == (1, 2) and float(err[0, 0]) < 0.5 and float(err[0, 1]) < 0.5
-    assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1])
+    assert err.shape == (1, 3) and float(err[0, 0]) < 0.5 and float(err[0, 1]) < 0.5
+    # facing the camera, a sphere of radius 10 seen from 40 at 40 degrees over 24 pixels turns ~2.8 degrees a pixel
+    pixel = 2 * 30.0 * math.tan(math.radians(20.0)) / 24  # the pixel's size at the sphere's front (distance 30)
+    assert abs(float(err[0, 2]) - math.degrees(pixel / 10.0)) < 1.0
+    assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1:]).all()
     squashed = Meshes(sphere.verts * torch.tensor([1.0, 1.0, 0.5]), sphere.faces, sphere.uvs, sphere.face_uvs)
     assert float(normal_errors(squashed, [sphere], cams, rgba, toward)[0, 0]) > 5.0
 

@@ -104,6 +104,7 @@ def test_a_run_trains_with_the_prior_keeps_it_and_can_be_diagnosed(tiny_glossy, 
     assert "without its learnt shift" in text.out and "elevation error" in text.out
     assert "° high" in text.out and "views of each test map" in text.out  # the by-map table
     assert "by their light's elevation" in text.out  # the by-elevation table
+    assert "turn within a pixel" in text.out  # how fast the GT surface turns where it mirrors the sun
     with pytest.raises(SystemExit) as exit_:  # --split all counts the samples it trained on without a --dataset
         diagnose_light.main(["--run", str(out), "--split", "all"])
     assert exit_.value.code == 2 and "--dataset" in capsys.readouterr().err
