@@ -85,7 +85,7 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
 
 def test_normal_turn_is_the_largest_angle_to_a_covered_neighbour():
     """A 4 x 4 view whose left half faces +x and right half +y: the two columns at the break turn 90 degrees, the
-    others none; an uncovered neighbour does not count, and a pixel with none covered turns 0."""
+    others none; an uncovered neighbour does not count, and an uncovered pixel turns 0."""
     from pipelines.metrics import normal_turn_deg
     n = torch.zeros(1, 4, 4, 3)
     n[..., :2, 0], n[..., 2:, 1] = 1.0, 1.0
@@ -108,7 +108,7 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     toward = torch.nn.functional.normalize((to_camera[0] * weight[0, :, None]).sum(0), dim=0)[None]
     err = normal_errors(sphere, [sphere], cams, rgba, toward)
     assert err.shape == (1, 3) and float(err[0, 0]) < 0.5 and float(err[0, 1]) < 0.5
-    # facing the camera, a sphere of radius 10 seen from 40 at 40 degrees over 24 pixels turns ~2.8 degrees a pixel
+    # facing the camera, a sphere of radius 10 seen from 40 at 40 degrees over 24 pixels turns ~5.2 degrees a pixel
     pixel = 2 * 30.0 * math.tan(math.radians(20.0)) / 24  # the pixel's size at the sphere's front (distance 30)
     assert abs(float(err[0, 2]) - math.degrees(pixel / 10.0)) < 1.0
     assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1:]).all()
