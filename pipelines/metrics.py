@@ -194,7 +194,7 @@ def normal_error_deg(pred: torch.Tensor, pred_alpha: torch.Tensor, gt: torch.Ten
 
 
 def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(B,) angle in degrees between unit vectors (B, 3)."""
+    """(...) angle in degrees between unit vectors (..., 3)."""
     return torch.rad2deg(torch.arccos((a * b).sum(-1).clamp(-1, 1)))
 
 
@@ -230,8 +230,7 @@ def normal_turn_deg(normals: torch.Tensor, weight: torch.Tensor, size: int) -> t
     turn = normals.new_zeros(n.shape[:3])
     for dim in (1, 2):  # each pair of neighbours along rows, then columns
         a, b = (slice(None),) * dim + (slice(1, None),), (slice(None),) * dim + (slice(None, -1),)
-        cos = (n[a] * n[b]).sum(-1).clamp(-1, 1)
-        pair = torch.rad2deg(torch.acos(cos)) * (covered[a] & covered[b])
+        pair = angle_deg(n[a], n[b]) * (covered[a] & covered[b])
         turn[a] = torch.maximum(turn[a], pair)
         turn[b] = torch.maximum(turn[b], pair)
     return turn.view(weight.shape)
