@@ -102,6 +102,9 @@ class TrainConfig:
     shape_detail: str = _opt("none", "each vertex of the global shape displaced along its normal by what pixel-aligned "
                              "image features show where it projects (features), or the global shape alone (none)",
                              ("none", "features"))
+    probe_normals: str = _opt("surface", "the normals the probe head's mirror cue reads: the predicted surface's, or "
+                              "an image-space network's trained against the GT mesh's in each training view (pixels: "
+                              "3D supervision the paper does not use)", ("surface", "pixels"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
@@ -176,6 +179,9 @@ class TrainConfig:
             if getattr(self, name) == value and self.resolved_sun_lobe() != "probe":
                 raise ConfigError(f"{name} '{value}' reads the probe head's sun off the mirror cue; use it with the "
                                   "probe sun (--sun-lobe probe or auto, with the probe light head)")
+        if self.probe_normals == "pixels" and (self.resolved_light_head() != "probe" or self.probe_samples != "pixels"):
+            raise ConfigError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with the probe "
+                              "light head and --probe-samples pixels")
         if self.light_supervision == "sun" and (self.shading not in SG_LIGHT or self.resolved_light_head() != "probe"):
             raise ConfigError("light_supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg "
                               "or sh-sg and the probe light head")
@@ -187,6 +193,10 @@ class TrainConfig:
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self
+
+    def reads_gt_normals(self) -> bool:
+        """Whether training reads the GT mesh's normals in every view (a diagnostic's, or the pixel normals' loss)."""
+        return self.shape_supervision or self.probe_normals == "pixels"
 
     @classmethod
     def from_dict(cls, values: dict, preset: str = "cpu") -> "TrainConfig":

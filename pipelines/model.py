@@ -36,6 +36,7 @@ from dibrpp.sg import sg_integral
 
 from .light_probe import SUN_BROADEST, ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
 from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
+from .pixel_normals import PixelNormalNet
 from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
 
@@ -53,7 +54,8 @@ MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
            "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features"),
-           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue", "cue-on-metal")}
+           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue", "cue-on-metal"),
+           "probe_normals": ("surface", "pixels")}
 
 
 @dataclass
@@ -101,6 +103,9 @@ class ModelConfig:
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
+    # the normals the probe head's mirror cue reads: the predicted surface's, or an image-space network's
+    # (pipelines.pixel_normals, trained against the GT mesh's; the probe head reading the pixels)
+    probe_normals: str = "surface"
     env_height: int = 16
     env_width: int = 32
     predict_metallic: bool = False
@@ -115,6 +120,9 @@ class ModelConfig:
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
+        if self.probe_normals == "pixels" and (self.light_head != "probe" or self.probe_samples != "pixels"):
+            raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
+                             "light_head 'probe' and probe_samples 'pixels'")
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
@@ -161,10 +169,12 @@ class Prediction:
     """What the encoder predicts for a batch of B images; converts to renderer objects."""
 
     def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes,
-                 facing: torch.Tensor | None = None):
+                 facing: torch.Tensor | None = None, pixel_normals: torch.Tensor | None = None):
         self.verts, self.texture = verts, texture
         # (B, Ht, Wt): how squarely each texel faced the input camera (0: away); None for the global texture
         self.facing = facing
+        # (B, S, S, 3): the probe's world-frame normals per input pixel (probe_normals "pixels"), else None
+        self.pixel_normals = pixel_normals
         self.roughness, self.specular, self.metallic = roughness, specular, metallic
         self.light_params, self.config, self.template = light_params, config, template
 
@@ -205,8 +215,9 @@ class Prediction:
     def _replace(self, fn, light_params: dict | None = None) -> "Prediction":
         """A prediction with ``fn`` applied to every tensor (and the light's parameters replaced, if given)."""
         light = light_params if light_params is not None else {k: fn(v) for k, v in self.light_params.items()}
+        optional = lambda t: None if t is None else fn(t)  # noqa: E731
         return Prediction(fn(self.verts), fn(self.texture), fn(self.roughness), fn(self.specular), fn(self.metallic),
-                          light, self.config, self.template, None if self.facing is None else fn(self.facing))
+                          light, self.config, self.template, optional(self.facing), optional(self.pixel_normals))
 
     def detached(self) -> "Prediction":
         return self._replace(torch.Tensor.detach)
@@ -266,6 +277,8 @@ class Encoder(nn.Module):
         self.material_head = nn.Linear(512, 3)
         if c.shape_detail == "features":
             self.shape_detail = PixelAlignedDetail(w, uniform_laplacian(template.faces, template.verts.shape[1]))
+        if c.probe_normals == "pixels":
+            self.pixel_normals = PixelNormalNet()
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
@@ -367,12 +380,15 @@ class Encoder(nn.Module):
         return torch.cat([seen * (facing > 0), facing], 1)
 
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
-                     code: torch.Tensor, metallic: torch.Tensor) -> dict:
-        """The light read from the input through the predicted surface (pipelines.light_probe)."""
+                     code: torch.Tensor, metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
+        """The light read from the input through the predicted surface (pipelines.light_probe); ``pixel_normals``
+        (B, S, S, 3): the normals its pixels read instead of the surface's (held: they learn from their own loss)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
             normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
                                                                  *input_radiance(images))
+            if pixel_normals is not None:
+                normals = torch.where(weight.unsqueeze(-1) > 0, pixel_normals.detach().flatten(1, 2), normals)
         else:
             seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
             radiance = decode_premultiplied(seen[..., :3], seen[..., 3:])
@@ -422,13 +438,16 @@ class Encoder(nn.Module):
         texture, facing = self._texture(f, stem, images, texels)
         roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
+        pixel_normals = None
+        if c.probe_normals == "pixels":
+            pixel_normals = self.pixel_normals(images, cameras.world_to_camera.to(images).expand(images.shape[0], 4, 4))
         if c.light_head == "probe":
-            light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic)
+            light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic, pixel_normals)
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":
             light = white_balance(light, kind)
-        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing)
+        return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing, pixel_normals)
 
     def _light_from_code(self, f: torch.Tensor) -> dict:
         """The light regressed from the global code (the paper's head)."""

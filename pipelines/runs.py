@@ -23,7 +23,7 @@ import torch
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
-from . import light_prior
+from . import light_prior, pixel_normals
 from .config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from .model import Encoder, ModelConfig
 
@@ -189,7 +189,7 @@ def make_model(config: TrainConfig) -> Encoder:
                                probe_samples=config.probe_samples, input_range=config.input_range,
                                sun_lobe=config.resolved_sun_lobe(), sun_cue=config.resolved_sun_cue(),
                                sun_axis=config.resolved_sun_axis(), sun_min_sharpness=config.sun_min_sharpness,
-                               shape_detail=config.shape_detail,
+                               shape_detail=config.shape_detail, probe_normals=config.probe_normals,
                                light_prior=light_prior.COMPONENTS if prior else 0))
     if prior:
         model.light_head.set_prior(prior)
@@ -197,11 +197,17 @@ def make_model(config: TrainConfig) -> Encoder:
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
-    if config.light_lr_scale == 1.0:
-        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the option had
-    light = set(model.light_head.parameters())
-    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in light]},
-                             {"params": list(light), "lr": config.lr * config.light_lr_scale}], lr=config.lr)
+    """Adam over the model: one group, or the light head's and the pixel normals' apart at their own rates."""
+    own = []  # (parameters, learning rate) of the parts trained at another rate than --lr
+    if config.light_lr_scale != 1.0:
+        own.append((list(model.light_head.parameters()), config.lr * config.light_lr_scale))
+    if config.probe_normals == "pixels":  # a separate model trained by its own loss (pipelines.pixel_normals)
+        own.append((list(model.pixel_normals.parameters()), pixel_normals.LEARNING_RATE))
+    if not own:
+        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the options had
+    apart = {p for params, _ in own for p in params}
+    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in apart]}]
+                            + [{"params": params, "lr": lr} for params, lr in own], lr=config.lr)
 
 
 def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None) -> Renderer:

@@ -134,7 +134,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     torch.manual_seed(config.seed)
     ds = dataset or open_train_split(config.dataset)  # before the run folder exists: bad data leaves nothing
     data = TrainingViews(ds, config.image_size, envmaps=bool(config.light_supervision),
-                         roughness=config.oracle_roughness, normals=config.shape_supervision, device=config.device,
+                         roughness=config.oracle_roughness, normals=config.reads_gt_normals(), device=config.device,
                          max_objects=config.train_objects)
     model = make_model(config).to(config.device)
     opt = make_optimizer(model, config)

@@ -109,6 +109,30 @@ def test_the_pixel_aligned_detail_starts_at_zero_and_moves_the_surface_along_its
     assert (laplacian @ (detail.smoothing @ noise)).norm() < 0.2 * (laplacian @ noise).norm()
 
 
+def test_the_pixel_normals_start_facing_the_camera_in_the_world_and_the_probe_reads_them_held():
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=32, light_head="probe", probe_normals="pixels"))
+    images, cams = torch.rand(2, 4, 32, 32), _cams(2)
+    net = model.pixel_normals
+    with torch.no_grad():
+        net.out.weight.zero_()
+        net.out.bias.zero_()
+    towards_camera = torch.nn.functional.normalize(cams.centers, dim=-1).view(2, 1, 1, 3)  # the cameras look at 0
+    pred = model(images, cams)
+    assert pred.pixel_normals.shape == (2, 32, 32, 3)
+    assert torch.allclose(pred.pixel_normals, towards_camera.expand(2, 32, 32, 3), atol=1e-5)
+    assert torch.equal(pred.select([1]).pixel_normals, pred.pixel_normals[1:])
+    with torch.no_grad():  # other normals: another mirror cue, so another light
+        net.out.bias.copy_(torch.tensor([0.8, 0.3, 0.0]))
+    turned = model(images, cams)
+    assert not torch.allclose(turned.light_params["amplitude"], pred.light_params["amplitude"])
+    turned.light_params["amplitude"].sum().backward()  # held: the light is no loss of theirs
+    assert all(p.grad is None or p.grad.abs().max() == 0 for p in net.parameters())
+    assert model.light_head.log_gain.grad is not None
+    with pytest.raises(ValueError, match="probe_normals 'pixels'"):
+        Encoder(ModelConfig(image_size=32, probe_normals="pixels"))  # the global light head has no pixels
+
+
 def test_texels_follow_the_template_surface():
     model = Encoder(ModelConfig(image_size=32))
     c = model.config
