@@ -162,6 +162,7 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
     errors, lifts, shares, probes, maps, elevations, normals = {}, {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
     shapes, read_views = {}, []  # each object's predicted vertices, and what its normals are measured on again
+    pixel_normals = []  # the probe's own normals' errors, where the model has them
     with torch.no_grad():
         for start in range(0, len(views), 16):
             b = collate([ds[i] for i in views[start:start + 16]])
@@ -187,6 +188,9 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
                 from_png = model(clip_input(images), cams).light(cams.world_to_camera).to_envmap(64, 128).image
                 found["the run's light from the clipped input"] = metrics.dominant_direction(from_png)[0]
             normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt)[sunny])
+            if pred.pixel_normals is not None:  # the normals the probe reads (variant pixel-normals)
+                pixel_normals.append(metrics.normal_errors(pred.meshes(), gt_meshes, cams, rgba, d_gt,
+                                                           pred.pixel_normals)[sunny])
             for o, v in zip(b["object"].tolist(), pred.verts):
                 shapes.setdefault(o, []).append(v)
             read_views.append((b["object"].tolist(), cams, rgba, d_gt, sunny, gt_meshes))
@@ -260,6 +264,10 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
         rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
                      f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", "", ""])
     rows.append([f"({normal_rows[2]}: {float(normals[:, 2].nanmedian()):.1f})", "", "", "", ""])
+    if pixel_normals:
+        own = torch.cat(pixel_normals)
+        rows.append([f"(the probe's pixel normals' error (°): all pixels {float(own[:, 0].nanmedian()):.1f}, the sun's "
+                     f"pixels {float(own[:, 1].nanmedian()):.1f})", "", "", "", ""])
     if shares:
         rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", "", ""])
     if probes:

@@ -236,13 +236,17 @@ def normal_turn_deg(normals: torch.Tensor, weight: torch.Tensor, size: int) -> t
     return turn.view(weight.shape)
 
 
-def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor) -> torch.Tensor:
+def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun: torch.Tensor,
+                  pixel_normals: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 3) per view, the median angle (degrees) between the predicted and the GT surface's normals over the
     pixels both cover, and over those of them where the GT surface mirrors the ``sun`` (B, 3); and how far the GT
     surface turns within a pixel there (:func:`normal_turn_deg`, median): the error a pixel's misplacement of the
-    predicted surface costs at the sun's pixels. NaN where no pixel mirrors the sun."""
+    predicted surface costs at the sun's pixels. NaN where no pixel mirrors the sun. ``pixel_normals``
+    (B, S, S, 3): world-frame normals measured instead of the predicted surface's, on the pixels it covers."""
     radiance, alpha = rgba[..., :3], rgba[..., 3]
     pred_n, _, _, pred_w = pixel_samples(pred_meshes, cameras, radiance, alpha)
+    if pixel_normals is not None:
+        pred_n = pixel_normals.flatten(1, 2)
     gt = [pixel_samples(m, cameras[[k]], radiance[k:k + 1], alpha[k:k + 1]) for k, m in enumerate(gt_meshes)]
     gt_n, gt_v, gt_w = (torch.cat([g[i] for g in gt]) for i in (0, 1, 3))
     angle = angle_deg(pred_n, gt_n)

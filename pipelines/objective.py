@@ -177,10 +177,6 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         own = renderer.render_normals(pred.meshes(), views).image
         terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))
         weights["shape_supervision"] = 1.0
-    if pred.pixel_normals is not None:  # the probe's pixel normals (their only loss) against the GT mesh's in each view
-        gt = batch["normals"].reshape(*pred.pixel_normals.shape[:3], 4)
-        terms["pixel_normals"] = normal_loss(torch.cat([pred.pixel_normals, gt[..., 3:]], -1), gt)
-        weights["pixel_normals"] = 1.0
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)

@@ -6,8 +6,10 @@ mirror doubles that; one view's global code does not predict them, even when tol
 (docs/experiments.md, entries 19, 33, 34). :class:`PixelNormalNet` is a small U-Net on the input image that
 predicts a normal per pixel, in the camera's frame (what a convolution can read off an image does not depend on
 where the camera stands), trained against the GT mesh's normals in each input view: 3D supervision, which the
-paper does not use. Only the probe reads these normals, detached (they learn from their supervision alone); the
-mesh, its shading and every other head are the model's as before.
+paper does not use. It is fitted once, before the model trains (:func:`fit`; trained jointly from scratch, its
+early normals misled the light head, and at the model's learning rate it saw a quarter of the views: entry 35),
+kept in the run folder, and held while the model trains. Only the probe reads these normals: the mesh, its
+shading and every other head are the model's as before.
 """
 from __future__ import annotations
 
@@ -15,8 +17,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-LEARNING_RATE = 2e-3  # its own Adam rate: a separate model, trained by its own loss (entry 35 measured it at this)
+from .losses import normal_loss
+
+LEARNING_RATE = 2e-3  # the one-cycle schedule's peak
+FIT_STEPS, FIT_BATCH = 3000, 32  # ~15 min on 2 cores at 64 x 64; ~25 passes over the metallic set's 3840 views
 INPUT_CEILING = 4.0  # encoder colour above this (radiance ~20) is a highlight whatever its value: bounded input
+MIRROR_X = (-1.0, 1.0, 1.0)  # a camera-frame normal of the image flipped left-right
 
 
 def _block(cin: int, cout: int) -> nn.Sequential:
@@ -36,6 +42,11 @@ class PixelNormalNet(nn.Module):
 
     def forward(self, images: torch.Tensor, world_to_camera: torch.Tensor) -> torch.Tensor:
         """``world_to_camera`` (B, 4, 4) or (B, 3, 3): each input view's camera."""
+        camera = self.camera_normals(images)
+        return camera @ world_to_camera[:, None, :3, :3].to(camera)  # n_world = R^T n_camera (rows)
+
+    def camera_normals(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, S, S, 3) unit normals in each view's camera frame (x right, y up, z towards the camera)."""
         x = torch.cat([images[:, :3].clamp(0, INPUT_CEILING), images[:, 3:]], 1)
         skips = []
         for i, block in enumerate(self.down):
@@ -44,7 +55,37 @@ class PixelNormalNet(nn.Module):
         x = skips.pop()
         for block in self.up:
             x = block(torch.cat([F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False), skips.pop()], 1))
-        # camera frame (x right, y up, z towards the camera): starts facing the camera
-        camera = F.normalize(self.out(x) + x.new_tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1), dim=1, eps=1e-12)
-        rotation = world_to_camera[:, :3, :3].to(camera)
-        return torch.einsum("bchw,bcd->bhwd", camera, rotation)  # n_world = R^T n_camera
+        # starts facing the camera
+        return F.normalize(self.out(x) + x.new_tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1), dim=1, eps=1e-12).permute(0, 2, 3, 1)
+
+
+def fit(net: PixelNormalNet, images: torch.Tensor, world_to_camera: torch.Tensor, normals: torch.Tensor, seed: int,
+        steps: int | None = None, progress: bool = False) -> list[float]:
+    """Fit ``net`` to the GT normals of N views: ``images`` (N, 4, S, S) as the encoder sees them, their cameras'
+    ``world_to_camera`` (N, 4, 4), ``normals`` (N, S, S, 4) the GT mesh's world-frame normals and coverage
+    (TrainingViews' ``normals``). 1 - cos over the covered pixels, Adam in a one-cycle schedule; every other batch
+    mirrored left-right (the mirror image of a view is a view of the mirrored car). Batches are drawn from ``seed``.
+    ``steps``: FIT_STEPS unless given. Returns the loss every 100 steps."""
+    from tqdm import tqdm
+
+    steps = steps or FIT_STEPS
+    target = torch.cat([normals[..., :3] @ world_to_camera[:, None, :3, :3].mT.to(normals), normals[..., 3:]], -1)
+    opt = torch.optim.Adam(net.parameters(), lr=LEARNING_RATE)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(opt, LEARNING_RATE, total_steps=steps, pct_start=0.05)
+    g = torch.Generator().manual_seed(seed)
+    losses = []
+    for step in tqdm(range(steps), disable=not progress, desc="pixel normals", unit="step"):
+        k = torch.randint(len(images), (FIT_BATCH,), generator=g).to(images.device)
+        x, y = images[k], target[k]
+        if step % 2:
+            x, y = x.flip(3), y.flip(2) * y.new_tensor(MIRROR_X + (1.0,))
+        pred = net.camera_normals(x)
+        loss = normal_loss(torch.cat([pred, y[..., 3:]], -1), y)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        schedule.step()
+        if step % 100 == 0 or step == steps - 1:
+            losses.append(loss.item())
+    opt.zero_grad(set_to_none=True)  # a fitted net holds no gradient
+    return losses

@@ -5,6 +5,7 @@
       camera.json      the orbit camera of its training data (predict places the input camera with it)
       checkpoint.pt    model, model configuration, optimiser, iteration, RNG (tensors and plain data only)
       log.csv, loss.png, summary.json, snapshots/, tensorboard/
+      pixel_normals.pt the pixel-normal network fitted before the model trained (variant pixel-normals only)
 
 Also the objects a run is built from (model, optimiser, renderer), so that every entry point builds them the
 same way without importing another entry point.
@@ -26,8 +27,10 @@ from dibrpp.io import DataError, atomic_path
 from . import light_prior, pixel_normals
 from .config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from .model import Encoder, ModelConfig
+from .model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
+PIXEL_NORMALS = "pixel_normals.pt"  # variant pixel-normals: the network fitted before the model trains
 LOG, SUMMARY, LOSS_PLOT, SNAPSHOTS, TENSORBOARD = "log.csv", "summary.json", "loss.png", "snapshots", "tensorboard"
 
 
@@ -197,17 +200,27 @@ def make_model(config: TrainConfig) -> Encoder:
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
-    """Adam over the model: one group, or the light head's and the pixel normals' apart at their own rates."""
-    own = []  # (parameters, learning rate) of the parts trained at another rate than --lr
-    if config.light_lr_scale != 1.0:
-        own.append((list(model.light_head.parameters()), config.lr * config.light_lr_scale))
-    if config.probe_normals == "pixels":  # a separate model trained by its own loss (pipelines.pixel_normals)
-        own.append((list(model.pixel_normals.parameters()), pixel_normals.LEARNING_RATE))
-    if not own:
-        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the options had
-    apart = {p for params, _ in own for p in params}
-    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in apart]}]
-                            + [{"params": params, "lr": lr} for params, lr in own], lr=config.lr)
+    if config.light_lr_scale == 1.0:
+        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the option had
+    light = set(model.light_head.parameters())
+    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in light]},
+                             {"params": list(light), "lr": config.lr * config.light_lr_scale}], lr=config.lr)
+
+
+def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: bool = False) -> None:
+    """Variant pixel-normals: ``model``'s pixel-normal network fitted to the training views' GT normals
+    (:func:`pipelines.pixel_normals.fit`) before the model trains, kept in the run folder (a resumed run reads it
+    back), and held (no gradient) from then on. ``data``: TrainingViews with its normals."""
+    net, path = model.pixel_normals, out / PIXEL_NORMALS
+    if path.exists():
+        net.load_state_dict(torch.load(path, map_location=next(net.parameters()).device, weights_only=True))
+    else:
+        flat = lambda t: t.flatten(0, 1)  # noqa: E731 (samples, views, ...) -> views
+        images = model.visible_input(encoder_input(flat(data.images))).contiguous()
+        pixel_normals.fit(net, images, flat(data.world_to_camera), flat(data.normals), seed, progress=progress)
+        with atomic_path(path) as tmp:
+            torch.save(net.state_dict(), tmp)
+    net.requires_grad_(False)
 
 
 def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None) -> Renderer:

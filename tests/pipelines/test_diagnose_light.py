@@ -114,6 +114,9 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     assert torch.isnan(normal_errors(sphere, [sphere], cams, rgba, -toward)[0, 1:]).all()
     squashed = Meshes(sphere.verts * torch.tensor([1.0, 1.0, 0.5]), sphere.faces, sphere.uvs, sphere.face_uvs)
     assert float(normal_errors(squashed, [sphere], cams, rgba, toward)[0, 0]) > 5.0
+    # normals given per pixel are measured instead of the surface's, on its pixels: the GT's own, none off
+    true_normals = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])[0].view(1, 24, 24, 3)
+    assert float(normal_errors(squashed, [sphere], cams, rgba, toward, true_normals)[0, 0]) < 0.5
 
 
 def test_consensus_directions_add_each_views_sun_pixels_to_the_next_view_and_to_every_view_of_its_sample():

@@ -11,13 +11,14 @@ from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
+from pipelines import pixel_normals
 from pipelines.config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
 from pipelines.losses import (SUN_TARGET_KAPPA, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
                               independent_abs, normal_loss, roughness_floor, sun_direction_loss, with_albedo_detail)
-from pipelines import pixel_normals
+from pipelines.model_input import encoder_input
 from pipelines.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
-from pipelines.runs import make_model, make_optimizer, make_renderer
+from pipelines.runs import PIXEL_NORMALS, fitted_pixel_normals, make_model, make_optimizer, make_renderer
 from pipelines.train import learning_rate_factor, train
 
 
@@ -148,7 +149,7 @@ def _trained_by_one_term(tiny_glossy, batch: dict, term: str, **fields):
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, lap)
     weights = {"light_supervision": SUN_SUPERVISION_WEIGHT if fields.get("light_supervision") == "sun" else 1.0,
-               "shape_supervision": 1.0, "pixel_normals": 1.0}
+               "shape_supervision": 1.0}
     assert total.item() == pytest.approx(weights[term] * terms[term].item()) and total.item() > 0
     total.backward()
     return model, lap
@@ -224,20 +225,34 @@ def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_i
     assert model.shape_head.bias.grad.abs().max() > 0 and model.material_head.weight.grad.abs().max() == 0
 
 
-def test_the_pixel_normals_learn_from_the_gt_meshs_normals_alone_at_their_own_rate(tiny_glossy):
-    """Variant pixel-normals: the probe's pixel normals against the GT mesh's in each input view are their only
-    loss (the probe reads them held), and nothing else learns from it; their network has its own Adam group."""
-    cfg = TrainConfig(probe_normals="pixels").validate()
+def test_the_pixel_normals_are_fitted_to_the_gt_normals_kept_in_the_run_folder_and_held(tiny_glossy, tmp_path,
+                                                                                        monkeypatch):
+    """Variant pixel-normals: the network is fitted to the training views' GT normals before the model trains (its
+    loss falls), saved in the run folder and read back from there (not fitted again), and held: the model's losses
+    do not reach it."""
+    cfg = config(tiny_glossy, tmp_path / "run", lobes=4, probe_normals="pixels")
     assert cfg.reads_gt_normals() and not TrainConfig().reads_gt_normals()
-    b = TrainingData(str(tiny_glossy), 32, normals=True).batch(0, 2, seed=0)
-    model, _ = _trained_by_one_term(tiny_glossy, b, "pixel_normals", probe_normals="pixels")
-    assert model.pixel_normals.out.weight.grad.abs().max() > 0
-    for head in (model.shape_head, model.material_head, model.light_head.out):
-        assert head.weight.grad is None or head.weight.grad.abs().max() == 0
-    cfg = config(tiny_glossy, "unused", lobes=4, probe_normals="pixels")
-    groups = make_optimizer(model, cfg).param_groups
-    assert [g["lr"] for g in groups] == [cfg.lr, pixel_normals.LEARNING_RATE]
-    assert {id(p) for p in groups[1]["params"]} == {id(p) for p in model.pixel_normals.parameters()}
+    data = TrainingData(cfg.dataset, cfg.image_size, normals=True)
+    torch.manual_seed(0)
+    model = make_model(cfg)
+    images = model.visible_input(encoder_input(data.images.flatten(0, 1)))
+    losses = pixel_normals.fit(model.pixel_normals, images, data.world_to_camera.flatten(0, 1),
+                               data.normals.flatten(0, 1), seed=0, steps=120)
+    assert losses[-1] < 0.6 * losses[0]
+    monkeypatch.setattr(pixel_normals, "FIT_STEPS", 3)
+    fitted_pixel_normals(tmp_path / "run", model, data, seed=0)
+    assert (tmp_path / "run" / PIXEL_NORMALS).exists()
+    assert not any(p.requires_grad for p in model.pixel_normals.parameters())
+    monkeypatch.setattr(pixel_normals, "fit", lambda *a, **k: pytest.fail("fitted again"))
+    again = make_model(cfg)
+    fitted_pixel_normals(tmp_path / "run", again, data, seed=0)
+    for a, b in zip(model.pixel_normals.state_dict().values(), again.pixel_normals.state_dict().values()):
+        assert torch.equal(a, b)
+    lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+    total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), data.batch(0, 2, 0), cfg, lap)
+    total.backward()
+    assert all(p.grad is None for p in model.pixel_normals.parameters())
+    assert model.light_head.log_gain.grad is not None and "pixel_normals" not in terms
     for wrong in ({"light_head": "global"}, {"probe_samples": "texels"}):
         with pytest.raises(ConfigError, match="probe_normals 'pixels'"):
             TrainConfig(probe_normals="pixels", **wrong).validate()
