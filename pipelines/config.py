@@ -195,7 +195,7 @@ class TrainConfig:
         return self
 
     def reads_gt_normals(self) -> bool:
-        """Whether training reads the GT mesh's normals in every view (a diagnostic's, or the pixel normals' loss)."""
+        """Whether training reads the GT mesh's normals in every view (a diagnostic's loss, or the pixel normals' fit)."""
         return self.shape_supervision or self.probe_normals == "pixels"
 
     @classmethod

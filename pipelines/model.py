@@ -382,7 +382,7 @@ class Encoder(nn.Module):
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
                      code: torch.Tensor, metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe); ``pixel_normals``
-        (B, S, S, 3): the normals its pixels read instead of the surface's (held: they learn from their own loss)."""
+        (B, S, S, 3): the normals its pixels read instead of the surface's (held: fitted before the model trains)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
             normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,

@@ -55,8 +55,8 @@ class PixelNormalNet(nn.Module):
         x = skips.pop()
         for block in self.up:
             x = block(torch.cat([F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False), skips.pop()], 1))
-        # starts facing the camera
-        return F.normalize(self.out(x) + x.new_tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1), dim=1, eps=1e-12).permute(0, 2, 3, 1)
+        facing = x.new_tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1)  # where it starts: towards the camera
+        return F.normalize(self.out(x) + facing, dim=1, eps=1e-12).permute(0, 2, 3, 1)
 
 
 def fit(net: PixelNormalNet, images: torch.Tensor, world_to_camera: torch.Tensor, normals: torch.Tensor, seed: int,

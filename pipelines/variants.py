@@ -112,7 +112,8 @@ VARIANTS: dict[str, Variant] = {
                                "path) read where it projects: the shape read from the input's pixels",
                                {"shape_detail": "features"}, runs=(("metallic", 0),)),
     "pixel-normals": Variant("the probe's mirror cue read through normals an image-space U-Net predicts per pixel, "
-                             "trained against the GT mesh's (3D supervision the paper does not use)",
+                             "fitted to the GT mesh's before the model trains, then held (3D supervision the paper "
+                             "does not use)",
                              {"probe_normals": "pixels"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
