@@ -45,7 +45,7 @@ from dibrpp.sg import sg_integral
 
 from . import metrics
 from .light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
-from .model import LIGHT_KINDS, white_balance
+from .prediction import LIGHT_KINDS, white_balance
 from .model_input import clip_input, encoder_input, input_radiance
 from .runs import load_run, run_folder
 

@@ -13,8 +13,9 @@ import torch
 import torch.nn.functional as F
 
 from .losses import foreground_l1, hdr_srgb
-from .model import LIGHT_KINDS, MAX_SHARPNESS, Prediction, white_balance
+from .model import MAX_SHARPNESS
 from .model_input import MAX_LOG_RADIANCE
+from .prediction import LIGHT_KINDS, Prediction, white_balance
 
 
 def _free(params: dict, kind: str) -> dict:

@@ -12,7 +12,8 @@ from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere, uniform_laplacian, vertex_normals
 from pipelines import losses
 from pipelines.light_probe import compress_radiance, pixel_samples
-from pipelines.model import Encoder, ModelConfig, squash, white_balance
+from pipelines.model import Encoder, ModelConfig, squash
+from pipelines.prediction import white_balance
 from pipelines.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
 
 
