@@ -101,8 +101,8 @@ class ModelConfig:
     # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
     # show where it projects (pipelines.shape_detail); none: the global shape alone
     shape_detail: str = "none"
-    # the normals the probe head's mirror cue reads: the predicted surface's, or an image-space network's
-    # (pipelines.pixel_normals, trained against the GT mesh's; the probe head reading the pixels)
+    # the normals the probe head's mirror cue reads: the predicted surface's, or, in evaluation (not in training),
+    # an image-space network's (pipelines.pixel_normals, fitted to the GT mesh's; the probe head reading the pixels)
     probe_normals: str = "surface"
     env_height: int = 16
     env_width: int = 32
@@ -195,7 +195,8 @@ class Encoder(nn.Module):
         if c.shape_detail == "features":
             self.shape_detail = PixelAlignedDetail(w, uniform_laplacian(template.faces, template.verts.shape[1]))
         if c.probe_normals == "pixels":
-            self.pixel_normals = PixelNormalNet()
+            with torch.random.fork_rng(devices=[]):  # its own draws: every other weight starts as the default's
+                self.pixel_normals = PixelNormalNet()
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
@@ -299,7 +300,7 @@ class Encoder(nn.Module):
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
                      code: torch.Tensor, metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe); ``pixel_normals``
-        (B, S, S, 3): the normals its pixels read instead of the surface's (held: fitted before the model trains)."""
+        (B, S, S, 3): the normals its pixels read instead of the surface's (held: fitted apart from the model)."""
         b = images.shape[0]
         if self.config.probe_samples == "pixels":
             normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
@@ -356,7 +357,8 @@ class Encoder(nn.Module):
         roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
         pixel_normals = None
-        if c.probe_normals == "pixels":
+        if c.probe_normals == "pixels" and not self.training:  # read at evaluation only: trained through them, the
+            # light fits the rounded mesh it is rendered through and the probes and albedo get worse (entry 35)
             pixel_normals = self.pixel_normals(images, cameras.world_to_camera.to(images).expand(images.shape[0], 4, 4))
         if c.light_head == "probe":
             light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic, pixel_normals)

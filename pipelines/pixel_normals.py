@@ -7,9 +7,10 @@ mirror doubles that; one view's global code does not predict them, even when tol
 predicts a normal per pixel, in the camera's frame (what a convolution can read off an image does not depend on
 where the camera stands), trained against the GT mesh's normals in each input view: 3D supervision, which the
 paper does not use. It is fitted once, before the model trains (:func:`fit`; trained jointly from scratch, its
-early normals misled the light head, and at the model's learning rate it saw a quarter of the views: entry 35),
-kept in the run folder, and held while the model trains. Only the probe reads these normals: the mesh, its
-shading and every other head are the model's as before.
+early normals misled the light head, and at the model's learning rate it saw a quarter of the views), kept in the
+run folder, and held. Only the probe reads these normals, and only in evaluation: read in training too, the light
+was fitted to the rounded mesh it is rendered through, and the probes and the albedo got worse (entries 35, 36).
+The model trains as the default does; the mesh, its shading and every other head are the model's.
 """
 from __future__ import annotations
 

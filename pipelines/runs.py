@@ -5,7 +5,8 @@
       camera.json      the orbit camera of its training data (predict places the input camera with it)
       checkpoint.pt    model, model configuration, optimiser, iteration, RNG (tensors and plain data only)
       log.csv, loss.png, summary.json, snapshots/, tensorboard/
-      pixel_normals.pt the pixel-normal network fitted before the model trained (variant pixel-normals only)
+      pixel_normals.pt the pixel-normal network fitted before the model trained, read in evaluation (variant
+                       pixel-normals only)
 
 Also the objects a run is built from (model, optimiser, renderer), so that every entry point builds them the
 same way without importing another entry point.

@@ -137,7 +137,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
                          roughness=config.oracle_roughness, normals=config.reads_gt_normals(), device=config.device,
                          max_objects=config.train_objects)
     model = make_model(config).to(config.device)
-    if config.probe_normals == "pixels":  # fitted once, before the model trains, then held
+    if config.probe_normals == "pixels":  # fitted once, before the model trains, held, read in evaluation
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)
     opt = make_optimizer(model, config)
     start = restore(ckpt, model, opt) if ckpt.exists() else 0

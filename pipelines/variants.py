@@ -111,9 +111,9 @@ VARIANTS: dict[str, Variant] = {
     "vertex-features": Variant("each vertex displaced along its normal by pixel-aligned image features (a U-Net's up "
                                "path) read where it projects: the shape read from the input's pixels",
                                {"shape_detail": "features"}, runs=(("metallic", 0),)),
-    "pixel-normals": Variant("the probe's mirror cue read through normals an image-space U-Net predicts per pixel, "
-                             "fitted to the GT mesh's before the model trains, then held (3D supervision the paper "
-                             "does not use)",
+    "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
+                             "predicts per pixel, fitted to the GT mesh's before the model trains as the default "
+                             "(3D supervision the paper does not use)",
                              {"probe_normals": "pixels"}, runs=(("metallic", 0), ("glossy", 0))),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",

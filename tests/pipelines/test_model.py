@@ -110,14 +110,24 @@ def test_the_pixel_aligned_detail_starts_at_zero_and_moves_the_surface_along_its
     assert (laplacian @ (detail.smoothing @ noise)).norm() < 0.2 * (laplacian @ noise).norm()
 
 
-def test_the_pixel_normals_start_facing_the_camera_in_the_world_and_the_probe_reads_them_held():
+def test_the_pixel_normals_start_facing_the_camera_in_the_world_and_the_probe_reads_them_held_in_evaluation():
     torch.manual_seed(0)
     model = Encoder(ModelConfig(image_size=32, light_head="probe", probe_normals="pixels"))
+    torch.manual_seed(0)
+    default = Encoder(ModelConfig(image_size=32, light_head="probe"))
+    for name, value in default.state_dict().items():  # the network draws its own weights: the rest start as before
+        assert torch.equal(model.state_dict()[name], value), name
     images, cams = torch.rand(2, 4, 32, 32), _cams(2)
     net = model.pixel_normals
     with torch.no_grad():
         net.out.weight.zero_()
         net.out.bias.zero_()
+        net.out.bias.copy_(torch.tensor([0.8, 0.3, 0.0]))
+        training = model(images, cams)  # in training the probe reads the surface's normals, as the default does
+        assert training.pixel_normals is None
+        assert torch.equal(training.light_params["amplitude"], default(images, cams).light_params["amplitude"])
+        net.out.bias.zero_()
+    model.eval()
     towards_camera = torch.nn.functional.normalize(cams.centers, dim=-1).view(2, 1, 1, 3)  # the cameras look at 0
     pred = model(images, cams)
     assert pred.pixel_normals.shape == (2, 32, 32, 3)

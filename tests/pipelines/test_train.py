@@ -228,8 +228,8 @@ def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_i
 def test_the_pixel_normals_are_fitted_to_the_gt_normals_kept_in_the_run_folder_and_held(tiny_glossy, tmp_path,
                                                                                         monkeypatch):
     """Variant pixel-normals: the network is fitted to the training views' GT normals before the model trains (its
-    loss falls), saved in the run folder and read back from there (not fitted again), and held: the model's losses
-    do not reach it."""
+    loss falls, the global random state is left as it was), saved in the run folder and read back from there (not
+    fitted again), and held: the model's losses do not reach it."""
     cfg = config(tiny_glossy, tmp_path / "run", lobes=4, probe_normals="pixels")
     assert cfg.reads_gt_normals() and not TrainConfig().reads_gt_normals()
     data = TrainingData(cfg.dataset, cfg.image_size, normals=True)
@@ -240,7 +240,9 @@ def test_the_pixel_normals_are_fitted_to_the_gt_normals_kept_in_the_run_folder_a
                                data.normals.flatten(0, 1), seed=0, steps=120)
     assert losses[-1] < 0.6 * losses[0]
     monkeypatch.setattr(pixel_normals, "FIT_STEPS", 3)
+    rng = torch.get_rng_state()
     fitted_pixel_normals(tmp_path / "run", model, data, seed=0)
+    assert torch.equal(torch.get_rng_state(), rng)  # the model then trains as the default would, draw for draw
     assert (tmp_path / "run" / PIXEL_NORMALS).exists()
     assert not any(p.requires_grad for p in model.pixel_normals.parameters())
     monkeypatch.setattr(pixel_normals, "fit", lambda *a, **k: pytest.fail("fitted again"))
