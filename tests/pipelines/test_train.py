@@ -314,6 +314,19 @@ def test_swap_light_renders_each_prediction_against_the_same_object_under_its_ot
         assert snap["src"][r] == src and torch.equal(snap["target"][r], flat[dst])
 
 
+def test_the_pixel_normals_variant_trains_as_the_default_does(tiny_glossy, tmp_path, monkeypatch):
+    """Variant pixel-normals reads its network in evaluation only: its model's weights after training are the
+    default's, bit for bit; the network is the one thing its checkpoint adds."""
+    monkeypatch.setattr(pixel_normals, "FIT_STEPS", 3)
+    for name, fields in (("default", {}), ("pixels", {"probe_normals": "pixels"})):
+        train(config(tiny_glossy, tmp_path / name, lobes=4, iterations=4, **fields), progress=False)
+    default, variant = (torch.load(tmp_path / name / "checkpoint.pt", weights_only=True)["model"]
+                        for name in ("default", "pixels"))
+    assert {k for k in variant if not k.startswith("pixel_normals.")} == set(default)
+    for name, value in default.items():
+        assert torch.equal(variant[name], value), name
+
+
 def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
     # a run of 4 iterations extended to 8 (a constant rate: the default's decay depends on the run's length)
     full = config(tiny_glossy, tmp_path / "full", shading="mc", lr_schedule="constant")
