@@ -104,7 +104,8 @@ class TrainConfig:
                              ("none", "features"))
     probe_normals: str = _opt("surface", "the normals the probe head's mirror cue reads: the predicted surface's, or "
                               "in evaluation an image-space network's fitted to the GT mesh's in each training view "
-                              "(pixels: 3D supervision the paper does not use; training reads the surface's)", ("surface", "pixels"))
+                              "(pixels: 3D supervision the paper does not use; training reads the surface's)",
+                              ("surface", "pixels"))
     cross_view_only: bool = _opt(False, "image losses on renders in the other view only, not the input view")
     shared_light: bool = _opt(False, "cross-view renders lit by another object's light under the same env map")
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "

@@ -357,8 +357,9 @@ class Encoder(nn.Module):
         roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
         pixel_normals = None
-        if c.probe_normals == "pixels" and not self.training:  # read at evaluation only: trained through them, the
-            # light fits the rounded mesh it is rendered through and the probes and albedo get worse (entry 35)
+        # read in evaluation only: read in training too, the light is fitted to the rounded mesh it is rendered
+        # through, and the probes and the albedo get worse (docs/experiments.md, entry 35)
+        if c.probe_normals == "pixels" and not self.training:
             pixel_normals = self.pixel_normals(images, cameras.world_to_camera.to(images).expand(images.shape[0], 4, 4))
         if c.light_head == "probe":
             light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic, pixel_normals)
