@@ -122,7 +122,7 @@ def test_the_pixel_normals_start_facing_the_camera_in_the_world_and_the_probe_re
     with torch.no_grad():
         net.out.weight.zero_()
         net.out.bias.zero_()
-        net.out.bias.copy_(torch.tensor([0.8, 0.3, 0.0]))
+        net.out.bias.copy_(torch.tensor([0.8, 0.3, 0.0]))  # turned normals, which training must not read:
         training = model(images, cams)  # in training the probe reads the surface's normals, as the default does
         assert training.pixel_normals is None
         assert torch.equal(training.light_params["amplitude"], default(images, cams).light_params["amplitude"])
