@@ -1,9 +1,11 @@
 """The paper's evaluation metrics (Sec. E.3, E.6), per image or per sample; lower is better for all.
 
-- image: L1 between GT and re-rendered images on the GT foreground (display space, as in training);
+- image: L1 between GT and re-rendered images in display space (sRGB clipped to [0, 1]), over the whole image
+  composited on black, as the public code of DIB-R computes it, and over the GT foreground (ours);
 - 2D IoU loss: 1 - IoU of the GT mask and the predicted silhouette (both thresholded at 0.5);
 - light / texture: 1 - NCC (eq. 9), NCC(a, b) = sum(a * b) / (|a|_2 |b|_2) -- invariant to a global scale,
-  so a predicted light or texture that is right up to intensity scores 0;
+  so a predicted light or texture that is right up to intensity scores 0; the light on HDR maps and on LDR
+  maps (:func:`ldr_envmap`);
 - Chamfer distance between surface samples of the predicted and GT meshes, both scaled so that the GT
   bounding-box diagonal is 1 ("normalized as one", Sec. E.6), mean of the two directed squared distances.
 """
@@ -20,11 +22,17 @@ from scipy.spatial import cKDTree
 from .light_probe import mirror_directions, pixel_samples
 
 
-def image_l1(pred_rgb: torch.Tensor, gt_rgb: torch.Tensor, gt_mask: torch.Tensor) -> torch.Tensor:
+def image_l1_foreground(pred_rgb: torch.Tensor, gt_rgb: torch.Tensor, gt_mask: torch.Tensor) -> torch.Tensor:
     """(B,) mean |pred - gt| over the GT foreground; rgb (B, H, W, 3), mask (B, H, W) in [0, 1]."""
     m = gt_mask.unsqueeze(-1)
     num = ((pred_rgb - gt_rgb).abs() * m).sum((1, 2, 3))
     return num / (3 * m.sum((1, 2, 3))).clamp_min(1e-8)
+
+
+def image_l1_whole(pred_rgb: torch.Tensor, gt_rgb: torch.Tensor) -> torch.Tensor:
+    """(B,) mean |pred - gt| over every pixel and channel of images (B, H, W, 3) composited on black: the
+    background counts, as in DIB-R's test code (one mean, not the x3 channel sum of its training loss)."""
+    return (pred_rgb - gt_rgb).abs().mean((1, 2, 3))
 
 
 def iou_loss(pred_mask: torch.Tensor, gt_mask: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
@@ -40,6 +48,20 @@ def ncc_loss(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     a, b = a.reshape(a.shape[0], -1).double(), b.reshape(b.shape[0], -1).double()
     ncc = (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-30)
     return (1 - ncc).float()
+
+
+def ldr_envmap(env: torch.Tensor) -> torch.Tensor:
+    """(B, H, W, 3) HDR maps as LDR ones: each divided by its own mean radiance (over texels and channels) and
+    clipped to [0, 1], so what is brighter than the mean (a sun, a lamp, the bright sky around them) saturates.
+    Linear, no sRGB curve. Negative radiance (SH rings) counts as 0."""
+    env = env.clamp_min(0)
+    return (env / env.mean((1, 2, 3), keepdim=True).clamp_min(1e-30)).clamp_max(1)
+
+
+def envmap_losses(pred_env: torch.Tensor, gt_env: torch.Tensor) -> dict:
+    """{"light_hdr", "light_ldr": (B,)}: 1 - NCC (eq. 9) of equirect maps (B, H, W, 3) as they are and as
+    LDR maps (:func:`ldr_envmap`)."""
+    return {"light_hdr": ncc_loss(pred_env, gt_env), "light_ldr": ncc_loss(ldr_envmap(pred_env), ldr_envmap(gt_env))}
 
 
 def chamfer_distance(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.ndarray, gt_faces: np.ndarray,
@@ -217,6 +239,21 @@ def light_metrics(pred_light, gt_env, scene: "ProbeScene") -> dict:
     d_pred, _ = dominant_direction(pred_table)
     out["direction_deg"] = torch.where(frac >= SUN_FRACTION, angle_deg(d_pred, d_gt), torch.full_like(frac, float("nan")))
     return out
+
+
+def constant_light_references(gt_env: torch.Tensor, scene: "ProbeScene") -> dict:
+    """What every light metric gives a constant env map (no prediction at all) against the GT maps (B, H, W, 3), by
+    the same functions that score a prediction: {"light_hdr_constant", "light_ldr_constant", "probe_..._constant",
+    "colour_deg_constant", "direction_deg_constant": (B,)}. A constant map has no direction: its reference is
+    the guess "the light comes from straight above" (NaN where the GT map has no dominant light)."""
+    from dibrpp.lights import EnvMap
+
+    out = envmap_losses(torch.ones_like(gt_env), gt_env)
+    out.update(light_metrics(EnvMap(gt_env.new_ones(len(gt_env), 8, 16, 3)), EnvMap(gt_env), scene))
+    d_gt, frac = dominant_direction(gt_env)
+    up = gt_env.new_tensor([0.0, 0.0, 1.0]).expand(len(gt_env), 3)
+    out["direction_deg"] = torch.where(frac >= SUN_FRACTION, angle_deg(up, d_gt), torch.full_like(frac, float("nan")))
+    return {f"{k}_constant": v for k, v in out.items()}
 
 
 SUN_PIXEL_DEG = 10.0  # a pixel "mirrors the sun" where the GT surface's mirror direction is this close to it

@@ -12,7 +12,8 @@ from pipelines import metrics
 def test_identical_inputs_score_zero():
     img = torch.rand(2, 8, 8, 3)
     mask = (torch.rand(2, 8, 8) > 0.3).float()
-    assert torch.all(metrics.image_l1(img, img, mask) == 0)
+    assert torch.all(metrics.image_l1_foreground(img, img, mask) == 0)
+    assert torch.all(metrics.image_l1_whole(img, img) == 0)
     assert torch.all(metrics.iou_loss(mask, mask) == 0)
     assert torch.allclose(metrics.ncc_loss(img, img), torch.zeros(2), atol=1e-6)
 
@@ -41,7 +42,44 @@ def test_image_l1_counts_only_the_foreground():
     mask[0, :2] = 1
     pred[0, :2] = 0.25  # error 0.25 on the foreground
     pred[0, 2:] = 9.0  # background: ignored
-    assert metrics.image_l1(pred, gt, mask).item() == pytest.approx(0.25)
+    assert metrics.image_l1_foreground(pred, gt, mask).item() == pytest.approx(0.25)
+
+
+def test_whole_image_l1_by_hand_on_a_2x2_image():
+    """Every pixel and channel counts, the background too, as one mean (not DIB-R's x3 channel sum)."""
+    gt = torch.zeros(1, 2, 2, 3)
+    gt[0, 0, 0] = torch.tensor([0.2, 0.4, 0.6])  # the object: one pixel; the rest is black background
+    mask = torch.zeros(1, 2, 2)
+    mask[0, 0, 0] = 1
+    pred = gt.clone()
+    pred[0, 0, 0] = torch.tensor([0.5, 0.4, 0.0])  # |diff| 0.3 + 0 + 0.6 on the object
+    pred[0, 1, 1] = torch.tensor([0.3, 0.3, 0.3])  # a spill onto the background: 0.9
+    assert metrics.image_l1_whole(pred, gt).item() == pytest.approx((0.9 + 0.9) / 12)
+    assert metrics.image_l1_foreground(pred, gt, mask).item() == pytest.approx(0.9 / 3)
+    # per image of a batch
+    both = metrics.image_l1_whole(torch.cat([pred, gt]), torch.cat([gt, gt]))
+    assert both.tolist() == pytest.approx([0.15, 0.0])
+
+
+def test_ldr_envmap_divides_by_the_mean_and_clips_at_one():
+    env = torch.tensor([0.5, 1.0, 1.5, 5.0]).view(1, 1, 4, 1).expand(1, 1, 4, 3)  # grey, mean 2
+    assert metrics.ldr_envmap(env)[0, 0, :, 0].tolist() == pytest.approx([0.25, 0.5, 0.75, 1.0])
+    assert torch.equal(metrics.ldr_envmap(7.0 * env), metrics.ldr_envmap(env))  # any exposure: the same map
+    assert torch.equal(metrics.ldr_envmap(torch.full((1, 2, 4, 3), 3.0)), torch.ones(1, 2, 4, 3))  # a constant: 1
+    ring = torch.tensor([-2.0, 1.0, 4.0, 1.0]).view(1, 1, 4, 1).expand(1, 1, 4, 3)  # negative (SH) counts as 0
+    assert metrics.ldr_envmap(ring)[0, 0, :, 0].tolist() == pytest.approx([0.0, 2 / 3, 1.0, 2 / 3])
+
+
+def test_eq9_on_hdr_and_ldr_maps_by_hand():
+    """A sun of 100 in three sky texels of 1, against a constant map: on HDR maps the sun holds the NCC, on LDR
+    maps (mean 25.75, the sun clipped at 1) the sky does."""
+    gt = torch.tensor([1.0, 1.0, 1.0, 100.0]).view(1, 1, 4, 1).expand(1, 1, 4, 3)
+    losses = metrics.envmap_losses(torch.ones_like(gt), gt)
+    assert losses["light_hdr"].item() == pytest.approx(1 - 103 / (2 * math.sqrt(10003)), abs=1e-6)
+    sky = 1 / 25.75
+    assert losses["light_ldr"].item() == pytest.approx(1 - (3 * sky + 1) / (2 * math.sqrt(3 * sky ** 2 + 1)), abs=1e-6)
+    same = metrics.envmap_losses(3 * gt, gt)
+    assert same["light_hdr"].abs().item() < 1e-6 and same["light_ldr"].abs().item() < 1e-6
 
 
 def test_chamfer_zero_for_the_same_mesh_and_known_for_a_shift():
@@ -97,6 +135,27 @@ def test_a_constant_light_scores_worse_than_the_truth_and_a_tint_shows_in_the_co
         metrics.mean_colour(metrics.ProbeScene(w2c).render(EnvMap(env))["diffuse"]),
         metrics.mean_colour(metrics.ProbeScene(w2c).render(EnvMap(env * tint))["diffuse"])))))
     assert tinted["colour_deg"].item() == pytest.approx(want, abs=0.05) and want > 5
+
+
+def test_every_light_metric_has_its_constant_map_reference_under_the_same_definition():
+    from dibrpp.lights import EnvMap
+
+    sun = [0.6, 0.0, 0.8]
+    env = torch.cat([_sun_map(sun), torch.ones(1, 32, 64, 3)])  # a sunny sky; a flat grey map (no dominant light)
+    scene = metrics.ProbeScene(torch.eye(4)[None].expand(2, 4, 4))
+    ref = metrics.constant_light_references(env, scene)
+    names = ("light_hdr", "light_ldr", "probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
+    assert sorted(ref) == sorted(f"{k}_constant" for k in names)
+    constant = torch.ones(2, 8, 16, 3)
+    want = {**metrics.envmap_losses(torch.ones_like(env), env), **metrics.light_metrics(EnvMap(constant), EnvMap(env), scene)}
+    for k in names[:-1]:  # what a constant prediction scores, metric by metric
+        assert torch.allclose(ref[f"{k}_constant"], want[k], atol=1e-6, equal_nan=True), k
+    # eq. 9 of a constant against a constant map is 0 on both; on the sky the LDR map scores it another way
+    assert ref["light_hdr_constant"][1].abs() < 1e-6 and ref["light_ldr_constant"][1].abs() < 1e-6
+    assert ref["light_hdr_constant"][0] > 0 and ref["light_ldr_constant"][0] != ref["light_hdr_constant"][0]
+    # its direction: "straight above" against the sun 36.9 degrees from the zenith; none where there is no sun
+    assert ref["direction_deg_constant"][0].item() == pytest.approx(math.degrees(math.acos(0.8)), abs=8.0)
+    assert torch.isnan(ref["direction_deg_constant"][1])
 
 
 def test_a_rotated_sun_gives_the_rotation_angle():
