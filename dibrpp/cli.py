@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Monte-Carlo, Spherical Gaussians or spherical harmonics")
     r.add_argument("--spp", type=int, default=256, help="samples per pixel (mc)")
     r.add_argument("--sg-lobes", type=int, default=32, help="number of SG lobes fitted to the env map (sg)")
-    r.add_argument("--distance", type=float, default=3.0, help="orbit camera distance from the origin")
+    r.add_argument("--distance", type=float, default=3.0, help="orbit camera distance from the origin; beyond the mesh's "
+                   "radius about it (a dataset's object, in [-18, 18]: 60)")
     r.add_argument("--elevation", type=float, default=0.0, help="degrees")
     r.add_argument("--azimuth", type=float, default=0.0, help="degrees")
     r.add_argument("--fov", type=float, default=40.0, help="full field of view in degrees (Blender's camera angle)")
@@ -64,6 +65,8 @@ def _check_out(out: str) -> None:
 
 def _check(args) -> None:
     for flag, path in (("--mesh", args.mesh), ("--texture", args.texture), ("--envmap", args.envmap)):
+        if path is not None and Path(path).is_dir():
+            raise CLIError(f"{flag} {path}: is a folder; {flag} takes one file")
         if path is not None and not Path(path).is_file():
             raise CLIError(f"{flag} {path}: no such file")
     _check_out(args.out)
@@ -96,6 +99,23 @@ def _check_equirect(path, env) -> None:
                        "must be exactly twice the height); convert it to a 2:1 latitude-longitude map")
 
 
+def _check_mesh(args, mesh) -> None:
+    """Refuse a mesh that would render as nothing (no triangle with area) or a camera inside it (everything)."""
+    verts = mesh.verts[0].double()
+    corners = verts[mesh.faces]
+    areas = torch.linalg.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0], dim=-1).norm(dim=-1)
+    size = float((verts.amax(0) - verts.amin(0)).norm())
+    if not (areas > 1e-12 * size ** 2).any():  # relative: float rounding leaves collinear corners a tiny area
+        raise CLIError(f"--mesh {args.mesh}: the mesh has no triangle with area (all {len(mesh.faces)} have "
+                       "repeated or collinear corners); there is nothing to render")
+    # The camera orbits the origin; outside this sphere every vertex lies in front of it.
+    radius = float(verts.norm(dim=-1).max())
+    if args.distance <= radius:
+        raise CLIError(f"--distance {args.distance:g}: the camera at distance {args.distance:g} is inside the mesh's "
+                       f"bounds (radius {radius:.3g} around the origin it looks at); pass --distance larger than "
+                       f"{radius:.3g}, e.g. {3 * radius:.3g}")
+
+
 def render_command(args) -> None:
     from . import io
     from .brdf import Material
@@ -106,6 +126,7 @@ def render_command(args) -> None:
     _check(args)
     device = torch.device(args.device)
     mesh = io.load_mesh(args.mesh, device=device, with_uvs=bool(args.texture))
+    _check_mesh(args, mesh)
     if args.texture:
         tex = srgb_to_linear(torch.from_numpy(io.read_png(args.texture)[..., :3])).unsqueeze(0).to(device)
         albedo = tex

@@ -51,6 +51,8 @@ def _create_temp_file(folder: Path, prefix: str, suffix: str) -> str:
 
 def _require_file(path) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder, not a file")
     if not path.is_file():
         raise DataError(f"{path}: no such file")
     return path

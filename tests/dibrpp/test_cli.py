@@ -24,6 +24,9 @@ def assets(tmp_path_factory):
     io.write_exr(root / "env.exr", env)
     (root / "broken.exr").write_bytes(b"\x76\x2f\x31\x01garbage")
     (root / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
+    # no triangle with area: collinear corners, a repeated corner
+    (root / "flat.obj").write_text("v 0 0 0\nv 0.5 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 4 4\n")
+    io.save_mesh(root / "big.obj", 18 * m.verts[0], m.faces)  # a dataset's scale: [-18, 18]
     return root
 
 
@@ -112,7 +115,10 @@ def more_assets(assets):
     (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/env.exr", "--resolution", "0"), "--resolution 0"),
     (("--mesh", "{a}/sphere.obj", "--envmap", "{a}/missing.exr"), "missing.exr: no such file"),
     (("--mesh", "{a}/sphere.obj", "--texture", "{a}/missing.png", "--albedo-only"), "missing.png: no such file"),
-    (("--mesh", "{a}", "--envmap", "{a}/env.exr"), "no such file"),
+    (("--mesh", "{a}", "--envmap", "{a}/env.exr"), "--mesh {a}: is a folder; --mesh takes one file"),
+    (("--mesh", "{a}/flat.obj", "--envmap", "{a}/env.exr"), "flat.obj: the mesh has no triangle with area"),
+    (("--mesh", "{a}/big.obj", "--albedo-only"), "--distance 3: the camera at distance 3 is inside the mesh's bounds "
+     "(radius 18 around the origin it looks at); pass --distance larger than 18, e.g. 54"),
 ])
 def test_cli_more_bad_input_gives_one_error_line(more_assets, args, message):
     out = more_assets / "should_not_exist.exr"
@@ -142,3 +148,40 @@ def test_cli_output_follows_the_umask(assets):
                        preexec_fn=lambda: os.umask(0o022))
     assert r.returncode == 0, r.stderr
     assert stat.S_IMODE(out.stat().st_mode) == 0o644
+
+
+def test_a_camera_outside_the_bounds_of_a_big_mesh_renders_it(assets):
+    out = assets / "big.exr"
+    r = run("--mesh", assets / "big.obj", "--albedo-only", *BASE, "--distance", 54, "--out", out)
+    assert r.returncode == 0, r.stderr
+    alpha = io.read_exr(out, "RGBA")[..., 3]
+    assert alpha[12, 12] == 1 and alpha[0, 0] == 0
+
+
+REPO = Path(__file__).resolve().parents[2]
+# The example of README.md and docs/renderer.md: it runs as written on a fresh clone (the files are in examples/).
+EXAMPLE = ("python -m dibrpp render --mesh examples/car.obj --albedo 0.8,0.2,0.2 --roughness 0.3 "
+           "--envmap examples/sky.exr --elevation 20 --azimuth 45 --shading mc --spp 64 --resolution 128 --out car.png")
+
+
+def test_the_documented_example_runs_as_written(tmp_path):
+    documented = " ".join((REPO / "docs" / "renderer.md").read_text().replace("\\\n", " ").split())
+    assert EXAMPLE.replace("python", ".venv/bin/python", 1) in documented
+    argv = EXAMPLE.split()[1:]
+    argv[-1] = str(tmp_path / "car.png")  # the same command, writing elsewhere than the checkout
+    r = subprocess.run([sys.executable, *argv], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    img = io.read_png(tmp_path / "car.png")
+    assert img.shape == (128, 128, 4) and img[64, 64, 3] == 1 and img[0, 0, 3] == 0
+    assert 0.1 < img[..., :3][img[..., 3] == 1].mean() < 0.9  # neither black nor blown out
+
+
+def test_the_examples_are_what_examples_make_writes(tmp_path):
+    """The shipped example files are small and remade exactly by ``python -m examples.make``."""
+    r = subprocess.run([sys.executable, "-c", f"from examples.make import make; make(__import__('pathlib').Path({str(tmp_path)!r}))"],
+                       capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    shipped = REPO / "examples"
+    assert (tmp_path / "car.obj").read_text() == (shipped / "car.obj").read_text()
+    assert np.array_equal(io.read_exr(tmp_path / "sky.exr"), io.read_exr(shipped / "sky.exr"))
+    assert (shipped / "car.obj").stat().st_size < 200_000 and io.read_exr(shipped / "sky.exr").shape == (64, 128, 3)
