@@ -4,18 +4,23 @@
 
 Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), predicts from every test
 view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
-input view, 2D IoU loss, light 1 - NCC (predicted light as a world-frame equirect map vs the GT env
-map), texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV), Chamfer distance to the GT mesh, the
-probe-sphere light metrics and the predicted normals' angular error. Writes ``<dataset>/<run>.json`` (runs
-sharing a folder name get their parent folders in the name), a figure ``<dataset>/<run>.png`` (input,
-re-rendering, albedo and light ours vs GT, novel views) and ``<dataset>/<run>_failures.png`` (the worst test
-view by each metric) per run; a result is reused only while the run's checkpoint and config and the
-evaluation's settings are the same. Then a Markdown/CSV table of all runs, the paper-style tables
-(:mod:`pipelines.tables`) and the HTML report. Details: docs/evaluation.md.
+input view over the whole image (the paper's) and over the GT foreground, 2D IoU loss, light 1 - NCC
+(predicted light as a world-frame equirect map vs the GT env map, both as LDR maps and as HDR maps),
+texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV), Chamfer distance to the GT mesh, the
+probe-sphere light metrics and the predicted normals' angular error; beside each light metric, what a
+constant env map scores. Writes ``<dataset>/<run>.json`` (runs sharing a folder name get their parent
+folders in the name), a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and light ours vs GT,
+novel views) and ``<dataset>/<run>_failures.png`` (the worst test view by each metric) per run; a result is
+reused only while the run's checkpoint and config and the evaluation's settings are the same. Then a
+Markdown/CSV table of every result ``--out`` holds, the paper-style tables (:mod:`pipelines.tables`) and the
+HTML report. One evaluate writes an ``--out`` at a time. Details: docs/evaluation.md.
 """
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import sys
 import time
 from collections import Counter
@@ -35,22 +40,32 @@ from dibrpp.lights import EnvMap
 from . import metrics
 from .model_input import encoder_input
 from .refine import refine_light
-from .report import write_report
+from .report import evaluated_runs, write_report
 from .runs import checkpoint_digest, find_runs, load_config, load_run, make_renderer
 from .tables import write_tables
 
-METRICS = ("image", "iou", "light", "texture", "chamfer")
-# what a result JSON holds; a cached result of an older format is evaluated again (2: the direction's intervals)
-RESULT_FORMAT = 2
+# the paper's metrics: image L1 over the whole image (the paper's) and the GT foreground (ours), eq. 9 on LDR maps
+# (the paper's, as we read it) and on HDR maps
+METRICS = ("image_whole", "image_foreground", "iou", "light_ldr", "light_hdr", "texture", "chamfer")
+# what a result JSON holds; a cached result of an older format is evaluated again (3: the whole-image L1, eq. 9
+# on LDR maps, the dataset's kind and its split's size)
+RESULT_FORMAT = 3
 LIGHT_METRICS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
+# a metric and its reference: what a constant env map scores under the same definition
+CONSTANT_REFERENCES = tuple(f"{k}_constant" for k in ("light_ldr", "light_hdr", *LIGHT_METRICS))
+FAILURE_METRICS = ("image_foreground", "iou", "light_hdr", "texture", "chamfer", "probe_metal")
+# a split with fewer samples (objects under a map) gives means that say little: the direction's intervals
+# resample whole samples
+MIN_SAMPLES = 10
+LOCK_FILE = ".evaluate.lock"  # in --out: one evaluate writes a results folder at a time
 
 
 FIGURE_ROWS = 4
 NOVEL_AZIMUTHS = (90.0, 180.0)  # novel views: the input camera moved this far along its orbit
 FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)",
                   "metal probe (ours)", "metal probe (GT)", *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
-METRIC_NAMES = {"image": "image L1", "iou": "2D IoU loss", "light": "light 1-NCC", "texture": "tex 1-NCC",
-                "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
+METRIC_NAMES = {"image_foreground": "image L1 (foreground)", "iou": "2D IoU loss", "light_hdr": "light 1-NCC (HDR)",
+                "texture": "tex 1-NCC", "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
 
 
 @torch.no_grad()
@@ -77,24 +92,18 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
     gt_normals = [renderer.render_normals(gt, cams[[k]]) for k, gt in enumerate(gt_meshes)]
     normal_deg, normal_within = metrics.normal_error_deg(
         normals.rgb, normals.alpha, torch.cat([g.rgb for g in gt_normals]), torch.cat([g.alpha for g in gt_normals]))
+    shown_rgb, gt_rgb = display_image(out.rgb), display_image(rgba[..., :3])  # both composited on black
     per_view = {"normal_deg": normal_deg, "normal_within_10deg": normal_within,
-                "image": metrics.image_l1(display_image(out.rgb), display_image(rgba[..., :3]), gt_mask),
+                "image_whole": metrics.image_l1_whole(shown_rgb, gt_rgb),
+                "image_foreground": metrics.image_l1_foreground(shown_rgb, gt_rgb, gt_mask),
                 "iou": metrics.iou_loss(out.alpha, gt_mask),
-                "light": metrics.ncc_loss(pred_env, env),
+                **metrics.envmap_losses(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
-                "chamfer": torch.tensor(chamfer, dtype=torch.float64),
-                # reference: what the light metric gives a constant env map (no prediction at all)
-                "light_constant": metrics.ncc_loss(torch.ones_like(env), env)}
+                "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
     gt_light = EnvMap(env)
     probes = metrics.ProbeScene(cams.world_to_camera)
     per_view.update(metrics.light_metrics(light, gt_light, probes))
-    constant = metrics.light_metrics(EnvMap(torch.ones_like(env[:, :8, :16])), gt_light, probes)
-    # a constant map has no direction: its reference is the guess "the light comes from straight above"
-    up = torch.tensor([0.0, 0.0, 1.0]).expand(len(env), 3)
-    d_gt, frac = metrics.dominant_direction(env)
-    constant["direction_deg"] = torch.where(frac >= metrics.SUN_FRACTION, metrics.angle_deg(up, d_gt),
-                                            torch.full_like(frac, float("nan")))
-    per_view.update({f"{k}_constant": v for k, v in constant.items()})
+    per_view.update(metrics.constant_light_references(env, probes))
     rows = []
     if figure:
         novel = [display_image(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
@@ -120,6 +129,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     loaded = load_run(run)
     config, model, iteration = loaded.config, loaded.model, loaded.iteration
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
+    check_image_size(run, model.config.image_size, ds)
     renderer = make_renderer(config, seed=0, spp=eval_spp)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
     refine = (refine_steps, make_renderer(config, seed=0, training=True)) if refine_steps else None
@@ -143,17 +153,63 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     summary = metrics.direction_summary(per_view["direction_deg"].numpy()[sunny], sample_of_view)
     result.update({f"direction_{k}": v for k, v in summary.items() if k != "median"},
                   direction_deg_ci=summary["median_ci"], samples_with_dominant_light=len(set(sample_of_view.tolist())))
-    result.update(run=str(run), dataset=Path(ds.root).name, trained_on=Path(config.dataset).name,
+    result.update(split_size(ds, split))
+    result.update(run=str(run), dataset=Path(ds.root).name, dataset_kind=dataset_kind(ds),
+                  trained_on=Path(config.dataset).name,
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
                   view_stride=view_stride, variant=config.label(), split=split, refine_steps=refine_steps,
                   seconds_per_view=(time.perf_counter() - t0) / len(views))
     shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
-    worst = {k: views[int(per_view[k].argmax())] for k in (*METRICS, "probe_metal")}
+    worst = {k: views[int(per_view[k].argmax())] for k in FAILURE_METRICS}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True, refine=refine)
     _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True, refine=refine)
     labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k].max()):.3g})" for k in worst]
     return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
+
+
+def check_image_size(run: Path, image_size: int, ds: MultiViewDataset) -> None:
+    """A DataError unless the dataset's images are the size the run's model reads (as training refuses them)."""
+    if ds.resolution != image_size:
+        raise DataError(f"{run} was trained on {image_size}x{image_size} images but {ds.root} holds "
+                        f"{ds.resolution}x{ds.resolution}; evaluate it on a dataset rendered at {image_size} "
+                        f"(python -m datagen --resolution {image_size}) or train a run with --image-size {ds.resolution}")
+
+
+def dataset_kind(ds: MultiViewDataset) -> str | None:
+    """The kind of set the manifest says it is (metallic, glossy, diffuse: what decides its paper table), whatever
+    its folder is called; None where the manifest does not say."""
+    kind = ds.manifest.get("dataset")
+    return kind if isinstance(kind, str) else None
+
+
+def split_size(ds: MultiViewDataset, split: str) -> dict:
+    """How much the split holds: its samples (objects under a map), its env maps and, for the test split, how many
+    of them also light the train split's objects (a set with few maps cannot hold any out; None if the manifest
+    does not say)."""
+    maps = {env for _, env in ds.samples}
+    shared = None
+    if split == "test":
+        try:
+            trained = {int(e) for o in ds.manifest["objects"] if o["split"] == "train" for e in o["envmaps"]}
+            shared = len(maps & trained)
+        except (KeyError, TypeError, ValueError):
+            pass
+    return dict(samples=len(ds.samples), envmaps=len(maps), envmaps_in_train_split=shared)
+
+
+def split_warnings(r: dict) -> list[str]:
+    """One warning line per reason a result's means say less than they seem to: test env maps that the train
+    split also uses, too few samples."""
+    lines, where = [], f"{r['dataset']}'s {r.get('split', 'test')} split"
+    if r.get("envmaps_in_train_split"):
+        lines.append(f"warning: {where} is lit by {r['envmaps_in_train_split']} of its {r['envmaps']} env maps that "
+                     "its train split also uses: the light is not scored on unseen maps (the set has too few maps "
+                     "to hold some out; generate it with more --num-envmaps)")
+    if r.get("samples", MIN_SAMPLES) < MIN_SAMPLES:
+        lines.append(f"warning: {where} holds {r['samples']} samples (objects under a map) on {r['envmaps']} env "
+                     f"maps, fewer than {MIN_SAMPLES}: its means say little")
+    return lines
 
 
 def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | None = None) -> None:
@@ -219,20 +275,41 @@ def share_with_interval(share: float | None, interval: list | None) -> str:
     return f"{100 * share:.0f} % ({100 * interval[0]:.0f}–{100 * interval[1]:.0f})"
 
 
+ALL_RUNS_HEADER = ("dataset", "method", "variant", "K", "seed", "iterations", "Image L1 (whole)", "Image L1 (fg)",
+                   "2D IoU loss", "Light 1-NCC (LDR)", "Light 1-NCC (HDR)", "Tex 1-NCC", "Chamfer", "diffuse probe",
+                   "metal probe", "mirror probe", "colour (°)", "direction (°)", "≤ 25° (95 % interval)", "normal (°)")
+
+
+def constant_rows(results: list[dict]) -> list[dict]:
+    """One reference row per evaluated dataset and split: every light metric of a constant env map, under the
+    metric's own name (from the first result that has them)."""
+    rows = {}
+    for r in results:
+        key = (r["dataset"], r.get("split", "test"))
+        if key not in rows and "light_ldr_constant" in r:
+            rows[key] = {"dataset": r["dataset"], "shading": "constant light", "split": key[1],
+                         **{k.removesuffix("_constant"): r.get(k) for k in CONSTANT_REFERENCES}}
+    return list(rows.values())
+
+
 def write_table(results: list[dict], out: Path) -> str:
+    """all_runs.md / .csv: every result, then each dataset's constant-light reference row; the CSV also gives each
+    light metric's reference beside every run."""
     out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "trained_on", "shading", "variant", "lobes", "seed", "iteration", *METRICS, *LIGHT_METRICS,
-            "direction_within_25", "normal_deg"]
+    cols = ["dataset", "dataset_kind", "trained_on", "split", "shading", "variant", "lobes", "seed", "iteration",
+            *METRICS, *LIGHT_METRICS, *CONSTANT_REFERENCES, "direction_within_25", "normal_deg"]
     write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
-    header = ["dataset", "method", "variant", "K", "seed", "iterations", "Image L1", "2D IoU loss", "Light 1-NCC", "Tex 1-NCC",
-              "Chamfer", "diffuse probe", "metal probe", "mirror probe", "colour (°)", "direction (°)",
-              "≤ 25° (95 % interval)", "normal (°)"]
-    rows = [[dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if r["shading"] in ("sg", "sh-sg") else "", r["seed"], r["iteration"],
-             *(format_number(r.get(k), ".4f") for k in METRICS), *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS),
-             share_with_interval(r.get("direction_within_25"), r.get("direction_within_25_ci")),
-             format_number(r.get("normal_deg"), ".3g")]
-            for r in results]
-    text = markdown_table(header, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 2)) + "\n"
+
+    def cells(r):
+        sg = r["shading"] in ("sg", "sh-sg")
+        return [dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if sg else "", r.get("seed", ""),
+                r.get("iteration", ""), *(format_number(r.get(k), ".4f") for k in METRICS),
+                *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS),
+                share_with_interval(r.get("direction_within_25"), r.get("direction_within_25_ci")),
+                format_number(r.get("normal_deg"), ".3g")]
+
+    rows = [cells(r) for r in (*results, *constant_rows(results))]
+    text = markdown_table(ALL_RUNS_HEADER, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 2)) + "\n"
     (out / "all_runs.md").write_text(text)
     return text
 
@@ -291,6 +368,67 @@ def result_paths(runs: list[Path], root: Path, out: Path, dataset: str | None) -
     return paths
 
 
+def evaluate_runs(runs: list[Path], paths: dict[Path, Path], args) -> list[str]:
+    """Evaluate each run (or take its cached result) into its path, printing its metrics and, once per dataset
+    and split, why they may say less than they seem to; the runs that could not be evaluated, with why."""
+    failed, warned, t0, evaluated = [], set(), time.perf_counter(), 0
+    for i, run in enumerate(runs, 1):
+        try:
+            config = load_config(run)
+            if args.split == "all" and Path(args.dataset).resolve() == Path(config.dataset).resolve():
+                raise DataError(f"--split all on {args.dataset}, the dataset it was trained on, would count its "
+                                "training samples; use --split test")
+            path = paths[run]
+            key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
+                       refine_steps=args.refine_steps, results=RESULT_FORMAT,
+                       dataset=str(Path(args.dataset or config.dataset).resolve()))
+            r = cached_result(path, key)
+            if r is None:
+                eta = ""
+                if evaluated:
+                    left = len(runs) - i + 1  # at most: some may be cached
+                    eta = f", at most ~{(time.perf_counter() - t0) / evaluated * left / 60:.0f} min left"
+                print(f"run {i} of {len(runs)}: {run}{eta}", file=sys.stderr)
+                r = evaluate_and_write(run, path, key, args)
+                evaluated += 1
+        except DataError as e:
+            print(f"run {i} of {len(runs)}: {run}: not evaluated: {e}", file=sys.stderr)
+            failed.append(f"{run} ({e})")
+            continue
+        if r["iteration"] < r["trained_iterations"]:
+            print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
+        if (r["dataset"], r["split"]) not in warned:
+            warned.add((r["dataset"], r["split"]))
+            for line in split_warnings(r):
+                print(line, file=sys.stderr)
+        print(f"{run}: " + ", ".join(f"{k} {format_number(r.get(k), '.4f')}" for k in (*METRICS, *LIGHT_METRICS)))
+    return failed
+
+
+@contextlib.contextmanager
+def exclusive_out(out: Path):
+    """Hold ``out``'s lock file for the block; a DataError at once if another evaluate holds it (two writing one
+    folder would each write tables of what it has seen). The kernel drops the lock when its process ends, however
+    it ends, so a lock file left behind blocks no one."""
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            raise DataError(f"--out {out} is being written by another evaluate (pid {holder}); wait for it to "
+                            "finish or choose another --out") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)  # named in the message of a call refused meanwhile
+        try:
+            yield
+        finally:
+            os.ftruncate(fd, 0)
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.evaluate", description=__doc__)
     ap.add_argument("--runs", default="runs", metavar="DIR", help="folder of run folders (or one run folder) (default: runs)")
@@ -328,46 +466,24 @@ def main(argv=None) -> int:
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    results, failed, t0, evaluated = [], [], time.perf_counter(), 0
-    for i, run in enumerate(runs, 1):
-        try:
-            config = load_config(run)
-            if args.split == "all" and Path(args.dataset).resolve() == Path(config.dataset).resolve():
-                raise DataError(f"--split all on {args.dataset}, the dataset it was trained on, would count its "
-                                "training samples; use --split test")
-            path = paths[run]
-            key = dict(checkpoint=checkpoint_digest(run), view_stride=args.view_stride, spp=args.spp, split=args.split,
-                       refine_steps=args.refine_steps, results=RESULT_FORMAT,
-                       dataset=str(Path(args.dataset or config.dataset).resolve()))
-            r = cached_result(path, key)
-            if r is None:
-                eta = ""
-                if evaluated:
-                    left = len(runs) - i + 1  # at most: some may be cached
-                    eta = f", at most ~{(time.perf_counter() - t0) / evaluated * left / 60:.0f} min left"
-                print(f"run {i} of {len(runs)}: {run}{eta}", file=sys.stderr)
-                r = evaluate_and_write(run, path, key, args)
-                evaluated += 1
-        except DataError as e:
-            print(f"run {i} of {len(runs)}: {run}: not evaluated: {e}", file=sys.stderr)
-            failed.append(f"{run} ({e})")
-            continue
-        if r["iteration"] < r["trained_iterations"]:
-            print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
-        print(f"{run}: " + ", ".join(f"{k} {r.get(k, float('nan')):.4f}" for k in (*METRICS, *LIGHT_METRICS)))
-        results.append(r)
-    if results:
-        print(write_table(results, out))
-        write_direction_figures(results, out)
-        print(write_tables(out))
-        report = write_report(out)
-        print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
+    try:
+        with exclusive_out(out):
+            failed = evaluate_runs(runs, paths, args)
+            found = [r for _, r in evaluated_runs(out)]  # this call's and every earlier call's into --out
+            if found:
+                print(write_table(found, out))
+                write_direction_figures(found, out)
+                print(write_tables(out))
+                report = write_report(out)
+                print(f"wrote {out}/tables.md, tables.tex, table*.csv, all_runs.md and {report}")
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     if failed:
         print(f"error: {len(failed)} of {len(runs)} runs could not be evaluated: {'; '.join(failed)}",
               file=sys.stderr)
         return 2
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -11,8 +11,7 @@ from pathlib import Path
 from dibrpp.formatting import format_number
 from dibrpp.io import atomic_path
 
-from .tables import (COLUMNS, HEADER, LIGHT_COLUMNS, LIGHT_HEADER, RESULT_KEYS, build_tables, read_result, row_cells,
-                     run_key)
+from .tables import RESULT_KEYS, build_tables, column_headers, read_result, row_cells, split_phrase
 
 # fluid: the page, its figures and its loss curves follow the window; wide tables scroll on their own
 STYLE = """body{font-family:sans-serif;margin:1em 2%}h1,h2,h3{margin:.8em 0 .3em}
@@ -23,9 +22,12 @@ img{max-width:100%;height:auto}.missing{color:#a00;white-space:nowrap}
 .run{display:flex;flex-wrap:wrap;gap:1em;align-items:flex-start;margin:1em 0}
 .run>.figure{flex:1 1 640px;min-width:0}.run>.curve{flex:0 1 480px;min-width:0}ul{margin-top:0}"""
 RUN_COLUMNS = (("dataset", "dataset"), ("run", "run"), ("shading", "method"), ("variant", "variant"), ("lobes", "K"),
-               ("seed", "seed"), ("iteration", "iterations"), ("image", "Image L1"), ("iou", "2D IoU loss"),
-               ("light", "Light 1-NCC"), ("texture", "Tex 1-NCC"), ("chamfer", "Chamfer"),
-               *zip(LIGHT_COLUMNS, LIGHT_HEADER))
+               ("seed", "seed"), ("iteration", "iterations"), ("image_whole", "Image L1 (whole)"),
+               ("image_foreground", "Image L1 (fg)"), ("iou", "2D IoU loss"), ("light_ldr", "Light 1-NCC (LDR)"),
+               ("light_hdr", "Light 1-NCC (HDR)"), ("texture", "Tex 1-NCC"), ("chamfer", "Chamfer"),
+               ("probe_diffuse", "Diffuse probe"), ("probe_metal", "Metal probe"), ("probe_mirror", "Mirror probe"),
+               ("colour_deg", "Colour (°)"), ("direction_deg", "Direction (°)"))
+METRICS = tuple(k for k, _ in RUN_COLUMNS[7:])
 
 
 def _img(path: Path) -> str:
@@ -34,16 +36,16 @@ def _img(path: Path) -> str:
 
 
 def _table_html(tab: dict) -> str:
-    head = ("<tr><th></th>" + "".join(f"<th>{h} ours</th><th>{h} paper</th>" for h in HEADER)
-            + "".join(f"<th>{html.escape(h)}</th>" for h in LIGHT_HEADER) + "<th></th></tr>")
+    head = "<tr><th></th>" + "".join(f"<th>{html.escape(h)}</th>" for h in column_headers()) + "<th></th></tr>"
     rows = []
     for r in tab["rows"]:
         cells = row_cells(r)
         note = f'<td class="missing">{html.escape(r["note"])}</td>' if r["note"] else "<td></td>"
         rows.append(f"<tr><td>{html.escape(r['label'])}</td>" + "".join(f"<td>{c}</td>" for c in cells) + note + "</tr>")
+    notes = "".join(f"<p><em>{html.escape(n)}</em></p>" for n in tab["notes"])
     claims = "".join(f"<li>{html.escape(c)}</li>" for c in tab["claims"])
     return (f"<h3>{html.escape(tab['title'])}</h3><div class='scroll'><table>{head}{''.join(rows)}</table></div>"
-            f"<ul>{claims}</ul>")
+            f"{notes}<ul>{claims}</ul>")
 
 
 def evaluated_runs(eval_dir: Path) -> list[tuple[Path, dict]]:
@@ -71,8 +73,7 @@ def _all_runs_html(found: list[tuple[Path, dict]]) -> str:
 def _run_html(path: Path, r: dict) -> str:
     name = Path(r["run"]).name
     figure, failures, curve = path.with_suffix(".png"), path.with_name(f"{path.stem}_failures.png"), Path(r["run"]) / "loss.png"
-    metrics = ", ".join(f"{c} {r[c]:.4f}" for c in (*COLUMNS, "chamfer", *LIGHT_COLUMNS)
-                        if isinstance(r.get(c), (int, float)))
+    metrics = ", ".join(f"{c} {r[c]:.4f}" for c in METRICS if isinstance(r.get(c), (int, float)))
     about = ", ".join(f"{k} {r[k]}" for k in ("shading", "variant", "seed", "split", "trained_on") if r.get(k) not in (None, ""))
     views = f", {r['test_views']} test views" if "test_views" in r else ""
     return (f"<h3>{html.escape(r['dataset'])} / {html.escape(name)}</h3>"
@@ -89,10 +90,10 @@ def write_report(eval_dir: Path) -> Path:
     parts = [f"<!doctype html><html><head><meta charset='utf-8'>"
              "<meta name='viewport' content='width=device-width, initial-scale=1'><title>dibrpp evaluation</title>"
              f"<style>{STYLE}</style></head><body><h1>dibrpp evaluation</h1>",
-             "<p>Test split: unseen objects under unseen environment maps. All metrics: lower is better.</p>",
-             "<h2>Tables</h2>"]
-    paper_rows = {run_key(r): r for _, r in found if not r.get("variant")}  # as tables.load_results keys them
-    parts += [_table_html(t) for t in build_tables(paper_rows).values()]
+             f"<p>{html.escape(split_phrase(r for _, r in found).capitalize()) if found else 'No run evaluated'}. "
+             "All metrics: lower is better.</p>", "<h2>Tables</h2>"]
+    tables, note = build_tables([r for _, r in found])
+    parts += ([f"<p>{html.escape(note)}</p>"] if note else []) + [_table_html(t) for t in tables.values()]
     parts.append(f"<h2>Every evaluated run ({len(found)})</h2>" + _all_runs_html(found))
     directions = sorted(eval_dir.glob("direction_*.png"))  # pipelines.evaluate.write_direction_figures
     if directions:

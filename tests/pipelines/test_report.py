@@ -15,8 +15,9 @@ BROWSER = shutil.which("chromium") or shutil.which("chromium-browser") or shutil
 def fake_eval(root, run_dir, dataset="glossy", variant="", width=120):
     d = root / dataset
     d.mkdir(parents=True, exist_ok=True)
-    r = dict(run=str(run_dir), dataset=dataset, shading="sg", lobes=32, seed=0, iteration=10, trained_iterations=10,
-             test_views=8, image=0.05, iou=0.1, light=0.3, texture=0.2, chamfer=0.01, variant=variant)
+    r = dict(run=str(run_dir), dataset=dataset, dataset_kind=dataset.split("-")[0], shading="sg", lobes=32, seed=0,
+             iteration=10, trained_iterations=10, test_views=8, split="test", image_whole=0.02, image_foreground=0.05,
+             iou=0.1, light_ldr=0.2, light_hdr=0.3, texture=0.2, chamfer=0.01, variant=variant)
     (d / f"{run_dir.name}.json").write_text(json.dumps(r))
     write_png(d / f"{run_dir.name}.png", np.random.default_rng(0).random((40, width, 3)).astype(np.float32))
     run_dir.mkdir(parents=True)
@@ -34,6 +35,11 @@ def test_report_shows_every_evaluated_run_whatever_its_dataset_is_called(tmp_pat
         assert f"<h3>{heading}</h3>" in page
     assert page.count("data:image/png;base64") == 6  # each run's figure and loss curve
     assert "img{max-width:100%;height:auto}" in page and "max-width:1500px" not in page
+    # the tables' line on what they leave out, each metric of each run, the split named
+    assert "glossy-hdri (glossy, the tables show glossy): in all_runs.md only" in page
+    assert "mydata: not one of the paper&#x27;s" in page
+    assert "image_whole 0.0200, image_foreground 0.0500, iou 0.1000, light_ldr 0.2000, light_hdr 0.3000" in page
+    assert "<p>Test split: unseen objects under unseen env maps." in page
 
 
 @pytest.mark.skipif(BROWSER is None, reason="no chromium (make setup installs it)")
@@ -42,7 +48,9 @@ def test_report_renders_in_a_headless_browser(tmp_path):
     page = write_report(tmp_path / "eval")
     cmd = [BROWSER, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom", page.as_uri()]
     dom = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=True).stdout
-    assert dom.count("<table>") == 6 and "Table F" in dom and "missing: make train-metallic" in dom
+    # Tables 1 (glossy rows only), D, E and F hold the run; Table C, with no diffuse run, is left out
+    assert dom.count("<table>") == 5 and "Table F" in dom and "missing: make train-glossy" in dom
+    assert "Table C:" not in dom and "Table C left out" in dom
     assert "Every evaluated run (1)" in dom
     assert dom.count("data:image/png;base64") == 2  # the run's figure and its loss curve, embedded
     shot = tmp_path / "shot.png"
