@@ -40,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="python -m datagen", description=(
         "Generate a procedural DIB-R++ dataset (metallic / glossy cars, diffuse heads) with Blender Cycles. "
         "Deterministic, resumable (rerun the same command), shardable."))
-    p.add_argument("--dataset", required=True, choices=DATASETS)
+    p.add_argument("--dataset", required=True, choices=DATASETS,
+                   help="what to make: metallic or glossy cars, or diffuse (subsurface) heads")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created; reruns resume into it)")
     p.add_argument("--preset", default="default", choices=sorted(PRESETS),
                    help="default: small, for 2 cores; paper: the paper's sizes (485 objects, 256 px)")
@@ -64,7 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--recycle", type=positive_int, default=4, metavar="N",
                    help="tasks per worker process before it is replaced")
     p.add_argument("--shard", default="0/1", metavar="I/N", help="i/n: generate only objects with index %% n == i")
-    p.add_argument("--no-preview", action="store_true")
+    p.add_argument("--no-preview", action="store_true",
+                   help="do not write preview.png, the contact sheet (a few objects' views, their albedo, env "
+                        "maps) written once every sample is done")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 

@@ -21,6 +21,10 @@ PRESETS = {
 # brings it to 10 %, as good as 256 spp, at 2.5x the time of 32 spp instead of 8x.
 DATASET_DEFAULTS = {"diffuse": dict(spp=64, denoise=True)}
 
+# The model's encoder downsamples images by 16, so training takes a side that is a multiple of 16
+# (pipelines.config.TrainConfig.image_size); a dataset at another side could not be trained on.
+RESOLUTION_MULTIPLE = 16
+
 _POSITIVE = ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "texture_size",
              "envmap_height", "grid")
 # Optional settings: left out of the manifest while unset, so older datasets keep matching their config.
@@ -63,6 +67,7 @@ class Config:
         for name in _POSITIVE:
             if int(getattr(self, name)) <= 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be a positive integer, got {getattr(self, name)}")
+        self._validate_resolution()
         self._validate_envs_per_object()
         if self.max_bounces < 0:
             raise ValueError("--max-bounces must be >= 0")
@@ -80,6 +85,15 @@ class Config:
                              "--envmaps every map is procedural (set their number with --num-envmaps)")
         if int(self.procedural_envmaps) < 0:
             raise ValueError(f"--procedural-envmaps must be >= 0, got {self.procedural_envmaps}")
+
+    def _validate_resolution(self) -> None:
+        step = RESOLUTION_MULTIPLE
+        if self.resolution % step == 0:
+            return
+        near = [n for n in (self.resolution // step * step, (self.resolution // step + 1) * step) if n > 0]
+        raise ValueError(f"--resolution {self.resolution}: must be a multiple of {step} (the model's encoder "
+                         f"downsamples images by {step}, so training refuses other sizes); e.g. "
+                         + " or ".join(map(str, near)))
 
     def _validate_envs_per_object(self) -> None:
         if self.envs_per_object <= self.num_envmaps:
