@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: light-prior setup system-libs test train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution data eval train-ablations clean help
+.PHONY: setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~5.5 h)"
@@ -34,8 +34,8 @@ help:
 	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~4 min)"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
+	@echo "make train-published  DIB-R++ as published: SG and MC on each dataset, SG seeds 1-2 on glossy (Tables 1, C, F)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
-	@echo "make light-prior      env maps without objects and the light prior fitted to them (variant light-prior; ~10 min)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
@@ -104,12 +104,6 @@ train-%: $(VENV)/.installed
 	  $(PY) -m pipelines.train --dataset $(DATA)/$* --shading sg --seed $$s --out $(RUNS)/$*/sg-seed$$s --resume $(TRAIN_ARGS); \
 	done
 
-# The light prior (variant light-prior): 2000 procedural env maps without objects (~10 min on 2 cores; resumable)
-# and their log-luminance PCA, cached beside them and refitted when the maps change.
-light-prior: $(VENV)/.installed
-	$(PY) -m datagen.prior_maps --out $(DATA)/light-prior
-	$(PY) -m pipelines.light_prior --maps $(DATA)/light-prior
-
 bench-renderer: $(VENV)/.installed
 	$(PY) -m benchmarks.renderer --out results/bench
 
@@ -124,7 +118,6 @@ train-ablations: $(VENV)/.installed
 # `python -m pipelines.train --list-variants`), each into runs/<dataset>/sg-<variant>-seed<s>.
 VARIANT_KINDS ?= ablation,diagnostic
 train-variants: $(VENV)/.installed
-	@$(MAKE) --no-print-directory light-prior  # the light-prior variant's maps (done and cached after the first time)
 	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=$(VARIANT_KINDS)
 
 train-variant-runs: $(VENV)/.installed
@@ -135,11 +128,31 @@ train-variant-runs: $(VENV)/.installed
 	    --out $(RUNS)/$$dataset/sg-$$variant-seed$$seed --resume $(TRAIN_ARGS) < /dev/null; \
 	done
 
+# DIB-R++ as published (variant published; docs/deviations.md lists what still differs): each method of
+# PUBLISHED_METHODS on each dataset with seed 0, and SG on glossy with seeds 1 and 2 (Table F), into
+# runs/<dataset>/<method>-published-seed<s>. Resumable.
+PUBLISHED_METHODS ?= sg mc
+train-published: $(VENV)/.installed
+	@set -e; for d in $(DATASETS); do \
+	  test -f $(DATA)/$$d/manifest.json || { echo "error: no dataset in $(DATA)/$$d; run 'make data-$$d' first"; exit 1; }; \
+	  for m in $(PUBLISHED_METHODS); do \
+	    echo "== $$d / $$m / published / seed 0"; \
+	    $(PY) -m pipelines.train --dataset $(DATA)/$$d --shading $$m --variant published --seed 0 \
+	      --out $(RUNS)/$$d/$$m-published-seed0 --resume $(TRAIN_ARGS); \
+	  done; \
+	done; \
+	for s in $(SEEDS); do \
+	  echo "== glossy / sg / published / seed $$s"; \
+	  $(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --variant published --seed $$s \
+	    --out $(RUNS)/glossy/sg-published-seed$$s --resume $(TRAIN_ARGS); \
+	done
+
 # The paper-style tables end to end: every dataset, every method and seed, Tables D/E, evaluation. Resumable:
 # rerun it after an interruption and it continues where it stopped.
 reproduce: data
 	@for d in $(DATASETS); do $(MAKE) --no-print-directory train-$$d || exit 1; done
 	@$(MAKE) --no-print-directory train-ablations
+	@$(MAKE) --no-print-directory train-published
 	@$(MAKE) --no-print-directory eval
 
 # A first look: the glossy set, SG, seed 0, evaluated.
@@ -148,18 +161,17 @@ first-look: data-glossy
 	@$(MAKE) --no-print-directory eval
 
 # More env maps, same objects: the glossy set with 200 maps instead of 40 (160 for training; the objects, their
-# split and the number of images are the glossy set's), SG trained on it (default, --swap-light, and the
-# probe-supervised diagnostic), and the same three 40-map runs evaluated on its test split
-# (results/eval-maps200/; `make eval` evaluates the 200-map runs). Resumable at every step; run
-# `make train-glossy train-variants` first for the 40-map runs.
+# split and the number of images are the glossy set's), SG trained on it (default, and the probe-supervised
+# diagnostic), and the same two 40-map runs evaluated on its test split (results/eval-maps200/; `make eval`
+# evaluates the 200-map runs). Resumable at every step; run `make train-glossy train-variants` first for the
+# 40-map runs.
 study-maps: $(VENV)/.installed
-	@for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do test -f $(RUNS)/glossy/$$r/checkpoint.pt || \
+	@for r in sg-seed0 sg-light-supervised-probe-seed0; do test -f $(RUNS)/glossy/$$r/checkpoint.pt || \
 	  { echo "error: no run $(RUNS)/glossy/$$r; run 'make train-glossy train-variants' first"; exit 1; }; done
 	$(PY) -m datagen --dataset glossy --num-envmaps 200 --out $(DATA)/glossy-maps200
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --out $(RUNS)/glossy-maps200/sg-seed0 --resume $(TRAIN_ARGS)
-	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --variant swap-light --out $(RUNS)/glossy-maps200/sg-swap-light-seed0 --resume $(TRAIN_ARGS)
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy-maps200 --shading sg --seed 0 --variant light-supervised-probe --out $(RUNS)/glossy-maps200/sg-light-supervised-probe-seed0 --resume $(TRAIN_ARGS)
-	@set -e; for r in sg-seed0 sg-swap-light-seed0 sg-light-supervised-probe-seed0; do \
+	@set -e; for r in sg-seed0 sg-light-supervised-probe-seed0; do \
 	  $(PY) -m pipelines.evaluate --runs $(RUNS)/glossy/$$r --dataset $(DATA)/glossy-maps200 --out results/eval-maps200; \
 	done
 
@@ -174,7 +186,7 @@ study-resolution: $(VENV)/.installed
 	$(PY) -m datagen --dataset metallic --resolution 32 --out $(DATA)/metallic-32
 	$(PY) -m datagen $(SUNNY_LARGE) --out $(DATA)/metallic-sunny-large
 	$(PY) -m datagen $(SUNNY_LARGE) --resolution 32 --out $(DATA)/metallic-sunny-large-32
-	$(PY) -m pipelines.train --dataset $(DATA)/metallic-32 --shading sg --seed 0 --image-size 32 --out $(RUNS)/metallic-32/sg-seed0 --resume $(TRAIN_ARGS)
+	$(PY) -m pipelines.train --dataset $(DATA)/metallic-32 --shading sg --seed 0 --out $(RUNS)/metallic-32/sg-seed0 --resume $(TRAIN_ARGS)
 	@set -e; for r in 64 32; do \
 	  run=$(RUNS)/metallic/sg-seed0; sunny=$(DATA)/metallic-sunny-large; \
 	  if [ $$r = 32 ]; then run=$(RUNS)/metallic-32/sg-seed0; sunny=$(DATA)/metallic-sunny-large-32; fi; \

@@ -1,7 +1,7 @@
 """Training-iteration benchmark: time per iteration of the CPU default config and its split.
 
     python -m benchmarks.train_step --dataset data/glossy [--shading sg] [--iterations 20] [--device cuda]
-        [--variant vertex-features]
+        [--variant published] [--preset paper]
 
 Phases: data (drawing the batch from the decoded tensors), encoder (forward), render + losses
 (eq. 8 and the cross-view renders again under their own light: 48 renders of 64x64 for 8 objects x 2 views),
@@ -20,7 +20,7 @@ from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, posit
 from dibrpp.formatting import markdown_table, write_csv
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.config import ConfigError, TrainConfig
+from pipelines.config import PRESETS, ConfigError, TrainConfig
 from pipelines.dataset import TrainingViews
 from pipelines.objective import multiview_losses
 from pipelines.runs import make_model, make_optimizer, step_renderers
@@ -31,9 +31,9 @@ PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> dict:
     """Median seconds per phase over ``iterations`` training steps (after ``warmup``)."""
     torch.manual_seed(config.seed)
-    data = TrainingViews(MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False),
-                         config.image_size, device=config.device)
-    model = make_model(config).to(config.device)
+    ds = MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False)
+    data = TrainingViews(ds, ds.resolution, device=config.device)
+    model = make_model(config, ds.resolution).to(config.device)
     opt = make_optimizer(model, config)
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
     cuda = config.device == "cuda"
@@ -52,7 +52,7 @@ def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> di
         batch = data.batch(it, config.batch_objects, config.seed)
         t1 = now()
         renderer, second = step_renderers(config, it)  # as train shades a step, second samples included
-        total, _, _ = multiview_losses(model, renderer, batch, config, laplacian, it, second)
+        total, _, _ = multiview_losses(model, renderer, batch, config, laplacian, second)
         t2 = now()
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -79,36 +79,38 @@ def build_parser() -> Parser:
                     help="untimed iterations first (torch.compile compiles here)")
     ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.variants to time "
                     "(default: the default model)")
+    ap.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="the training preset whose batch and "
+                    "samples per pixel are timed (paper: 16 objects, 64 spp; the image size is the dataset's) "
+                    "(default: cpu)")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the step runs (default: cpu)")
     ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
     return ap
 
 
 def configs(args) -> list[TrainConfig]:
-    """One config per --shading on the dataset's resolution, --out checked: all before any timing."""
+    """One config per --shading, --out and the dataset checked: all before any timing."""
     check_output_folder("--out", Path(args.out))
     try:
         TrainConfig.from_dict({"variant": args.variant})
     except ConfigError as e:
         raise DataError(f"--variant: {e}") from None
     try:
-        resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
+        MultiViewDataset(args.dataset, split="train", views_per_item=1)
     except DataError as e:
         raise DataError(f"{e}; run `make data` (or pass --dataset)") from None
     try:
-        return [TrainConfig.preset("cpu", dataset=args.dataset, shading=s, image_size=resolution, device=args.device,
-                                   variant=args.variant)
+        return [TrainConfig.preset(args.preset, dataset=args.dataset, shading=s, device=args.device,
+                                   variant=args.variant, predict_metallic=False)
                 for s in args.shading]
     except ConfigError as e:
         raise DataError(f"--dataset {args.dataset}: {e}") from None
 
 
-def write_results(results: list[dict], config: TrainConfig, iterations: int, out: Path) -> None:
+def write_results(results: list[dict], config: TrainConfig, res: int, iterations: int, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["shading", *PHASES, "total"]
     write_csv(out / "train.csv", results, cols)
-    res = config.image_size
-    model = f"variant {config.variant}" if config.variant else "CPU default config"
+    model = f"variant {config.variant}" if config.variant else "the default model"
     lines = [f"Training iteration on {config.device}, {model} ({config.batch_objects} objects x 2 views, "
              f"{4 * config.batch_objects} renders of {res}x{res}, K={config.lobes}, MC spp={config.spp}); ms, "
              f"median of {iterations}", "",
@@ -134,7 +136,8 @@ def main(argv=None) -> int:
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    write_results(results, runs[0], args.iterations, Path(args.out))
+    resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
+    write_results(results, runs[0], resolution, args.iterations, Path(args.out))
     return 0
 
 

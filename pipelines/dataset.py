@@ -1,7 +1,7 @@
 """Training tensors from a dataset: every training view decoded once, and the batches of view pairs.
 
 The dataset's format is read by :class:`datagen.reader.MultiViewDataset` (the one reader); this module owns
-what training draws from it: which (sample, view pair) items form an iteration's batch, and their partners.
+what training draws from it: which (sample, view pair) items form an iteration's batch.
 """
 from __future__ import annotations
 
@@ -15,16 +15,16 @@ from dibrpp.io import DataError
 class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
-    so resumes are exact. ``envmaps``, ``roughness`` and ``normals`` (the GT mesh's rendered in every view) load
-    GT only for the diagnostics that read it. The tensors live on ``device``; the batches' indices are drawn on the
+    so resumes are exact. ``envmaps`` and ``normals`` (the GT mesh's rendered in every view) load GT only for the
+    diagnostics (and the pixel normals' fit) that read it. The tensors live on ``device``; the batches' indices are drawn on the
     CPU, so a run draws the same batches on either. ``max_objects``: only the split's first objects (their every
     sample), for learning curves; 0 for all."""
 
-    def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, roughness: bool = False,
-                 normals: bool = False, device: str | torch.device = "cpu", max_objects: int = 0):
+    def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, normals: bool = False,
+                 device: str | torch.device = "cpu", max_objects: int = 0):
         if ds.resolution != image_size:
             raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
-                            f"{image_size}; pass --image-size {ds.resolution}")
+                            f"{image_size}")
         objects = list(dict.fromkeys(obj for obj, _ in ds.samples))
         if max_objects > len(objects):
             raise DataError(f"{ds.root}: the split has {len(objects)} objects, fewer than the {max_objects} asked for; "
@@ -40,9 +40,6 @@ class TrainingViews:
                 w2c.append(m)
                 fov.append(f)
         self.envmap_of_sample = torch.tensor([env for _, env in self.samples])
-        self.object_of_sample = torch.tensor([obj for obj, _ in self.samples])
-        self.roughness_of_sample = (torch.tensor([float(ds.materials[obj]["roughness"]) for obj, _ in self.samples])
-                                    if roughness else None)
         self.envmaps = {env: ds.envmap(env) for env in set(self.envmap_of_sample.tolist())} if envmaps else None
         self.images = torch.stack(imgs).view(n_samples, n_views, image_size, image_size, 4)
         self.world_to_camera = torch.stack(w2c).view(n_samples, n_views, 4, 4)
@@ -53,8 +50,6 @@ class TrainingViews:
         self.images, self.world_to_camera, self.fov = (t.to(device) for t in (self.images, self.world_to_camera, self.fov))
         if self.normals is not None:
             self.normals = self.normals.to(device)
-        if self.roughness_of_sample is not None:
-            self.roughness_of_sample = self.roughness_of_sample.to(device)
         if self.envmaps is not None:
             self.envmaps = {env: m.to(device) for env, m in self.envmaps.items()}
 
@@ -65,42 +60,18 @@ class TrainingViews:
             return torch.stack([renderer.render_normals(ds.mesh(obj).expand(self.num_views), Cameras(
                 self.world_to_camera[k], self.fov[k], self.resolution)).image for k, (obj, _) in enumerate(self.samples)])
 
-    def _partners(self, samples: torch.Tensor, key: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-        """The batch's second half redrawn as partners of the first: for item k, a sample sharing its ``key``
-        (env map or object), the item itself where there is none. Returns (samples, partner index)."""
-        partner = torch.arange(len(samples))
-        half = len(samples) // 2
-        anchors = samples[:half]
-        same = key[anchors, None] == key[None, :]  # (half, samples)
-        same[torch.arange(half), anchors] = False  # another sample if there is one
-        alone = ~same.any(1)
-        same[alone, anchors[alone]] = True
-        pick = torch.rand(same.shape, generator=g) * same
-        samples = torch.cat([anchors, pick.argmax(1), samples[2 * half:]])
-        partner[:half], partner[half:2 * half] = torch.arange(half, 2 * half), torch.arange(half)
-        return samples, partner
-
-    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1,
-              pairing: str = "") -> dict:
-        """The iteration's batch: ``image`` (B, 2, S, S, 4), cameras of both views, ``sample`` and ``partner``
-        (B,). ``pairing`` "shared-light": item k + size/2 is another object under item k's env map;
-        "swap-light": the same object under another env map; "": items are independent."""
+    def batch(self, iteration: int, size: int, seed: int, rank: int = 0, world: int = 1) -> dict:
+        """The iteration's batch: ``image`` (B, 2, S, S, 4), cameras of both views, and ``sample`` (B,)."""
         g = torch.Generator().manual_seed(seed * 1_000_003 + iteration)
         samples = torch.randint(self.num_samples, (size * world,), generator=g)[rank::world]
-        partner = torch.arange(len(samples))
-        if pairing:
-            key = {"shared-light": self.envmap_of_sample, "swap-light": self.object_of_sample}[pairing]
-            samples, partner = self._partners(samples, key, g)
         v1 = torch.randint(self.num_views, (size * world,), generator=g)[rank::world]
         v2 = (v1 + 1 + torch.randint(self.num_views - 1, (size * world,), generator=g)[rank::world]) % self.num_views
         views = torch.stack([v1, v2], 1)
         s = samples.unsqueeze(1).expand(-1, 2)
         out = dict(image=self.images[s, views], world_to_camera=self.world_to_camera[s, views], fov=self.fov[s, views],
-                   sample=samples, partner=partner)
+                   sample=samples)
         if self.normals is not None:
             out["normals"] = self.normals[s, views]
-        if self.roughness_of_sample is not None:
-            out["roughness"] = self.roughness_of_sample[samples]
         if self.envmaps is not None:
             out["envmap"] = torch.stack([self.envmaps[e] for e in self.envmap_of_sample[samples].tolist()])
         return out

@@ -5,9 +5,8 @@ error (median, share within 25 and 45 degrees) of the sources below, over all th
 stands (how high the sun stands decides where a mirror-like car shows it) and on each env map apart (where there
 are few):
 
-- the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power, and (the
-  probe sun) that lobe without the learnt shift the head adds to the cue's place (as ``sun_axis`` "cue" has it;
-  entry 25); each with its elevation error (signed: below the GT sun where negative); for a
+- the run's light, and (probe head) its sun lobe alone, with the sun's share of the light's power; each with its
+  elevation error (signed: below the GT sun where negative); for a
   run that reads the input's full range, also its light from the clipped input (what an 8-bit picture gives);
 - the mirror cue itself, no learning: the input scattered by the mirror directions of a surface's normals into
   a 32 x 64 world-frame map, whose dominant direction is taken (``metrics.dominant_direction``), read through
@@ -211,15 +210,6 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
             if probe and LIGHT_KINDS[config.shading] == "sg":
                 p = pred.light_params
                 found["the run's sun lobe alone"] = probe_to_world(p["axis"][:, -1], cams.world_to_camera)
-                head = model.light_head
-                if head.sun_source == "probe" and head.sun_axis != "cue":  # the cue's place, the learnt shift off
-                    own_axis, head.sun_axis = head.sun_axis, "cue"
-                    try:
-                        axis = model(images, cams).light_params["axis"][:, -1]
-                    finally:
-                        head.sun_axis = own_axis
-                    found["the run's sun lobe without its learnt shift (as sun_axis 'cue')"] = probe_to_world(
-                        axis, cams.world_to_camera)
                 power = sg_integral(p["sharpness"], p["amplitude"]).mean(-1)
                 sun = model.light_head.sun_lobes
                 shares.append((power[:, -sun:].sum(1) / power.sum(1))[sunny])

@@ -44,11 +44,18 @@ from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
 from . import metrics
 from .config import TrainConfig
-from .losses import foreground_l1, gradient_loss, hdr_srgb, normal_loss, roughness_floor, soft_iou_loss
+from .losses import foreground_l1, gradient_loss, hdr_srgb, normal_loss, soft_iou_loss
 from .model import Encoder, ModelConfig
 
 SIGNALS = ("normals", "silhouettes", "image", "image-from-normals", "image-annealed")
 ANNEAL_ROUGHNESS = 0.7  # ``image-annealed``: the roughness the fit starts from, lowered to the object's own
+
+
+def roughness_floor(start: float, iterations: int, iteration: int) -> float:
+    """The renders' least roughness at ``iteration`` of the annealed fit: ``start``, lowered linearly to 0 by two
+    thirds of its ``iterations``. A blurred reflection changes slowly with the normals, so the shape first fits the
+    broad shading and meets the sharp reflection near its basin."""
+    return start * max(0.0, 1 - iteration / max(1, 2 * iterations // 3))
 
 
 def object_views(ds: MultiViewDataset, obj: int, env: int) -> tuple[Cameras, torch.Tensor]:

@@ -33,15 +33,13 @@ from dibrpp.sg import sg_integral
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest step is ~3e-4 linear)
 BLUR_CELLS = 1.0  # std. dev. of the Gaussian that spreads each sample over the grid, in cells
-# light_prior: how strongly the prior's components are held to their spread when fitted to the mirror cue
-PRIOR_STRENGTH = 0.1
-# sun_cue "facing": the sun is read off the pixels that face the camera at least this much (n.v); grazing ones, at the
-# silhouette, mirror the direction straight behind the object through the least sure normals
+# the sun is read off the pixels that face the camera at least this much (n.v); grazing ones, at the silhouette,
+# mirror the direction straight behind the object through the least sure normals
 FACING_MIN = 0.3
-# sun_lobe "probe": the cue's radiance within this angle of the sun's axis is the sun's (metrics.dominant_direction's
-# cone), and the horizon's softness (in sin elevation) below which the sun's prior falls off
+# the cue's radiance within this angle of the sun's axis is the sun's (metrics.dominant_direction's cone), and the
+# horizon's softness (in sin elevation) below which the sun's prior falls off
 SUN_CONE_DEG = 20.0
-SUN_BROADEST = 0.5  # the sun lobe's own least sharpness: as broad as a hemisphere (what --sun-min-sharpness raises)
+SUN_BROADEST = 0.5  # the sun lobe's least sharpness: as broad as a hemisphere
 HORIZON_SOFTNESS = 0.05
 # MC's probe sun: its light's grid is this many times finer than the probe grid (64 x 128, 2.8 degree cells), so that
 # a sun trained as a sharp SG lobe is not spread over 11 degree cells
@@ -184,47 +182,32 @@ def sg_on_grid(axis: torch.Tensor, sharpness: torch.Tensor, amplitude: torch.Ten
 
 
 class ProbeLightHead(nn.Module):
-    """Light from the probe grid and the global code: an env grid (MC) or SG lobes, in the probe frame.
+    """Light from the probe grid and the global code, in the probe frame: SG lobes (``kind="sg"``) or MC's env grid
+    (``kind="env"``), each a sky and a sun.
 
-    SG: K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined grid sampled there (the sky,
-    the ground, walls), plus one sun lobe whose axis is a soft arg-max over the grid (a distribution over cells,
-    starting at the mirror cue's brightest region and shifted by a learnt residual, or with ``sun_axis="cue"`` the
-    cue's alone, or with ``"cue-on-metal"`` the shift scaled by 1 - the predicted metallic, returned as
-    ``sun_log_p`` (B, H*W)) with its own sharpness and intensity. With ``sun="probe"`` the
-    sun stays above the horizon and, on metal, its power is at least what the cue shows near its axis
-    (:func:`cue_sun_power`), so the image loss cannot switch it off: a K+1-th lobe on the sun's axis carries what
-    the cue adds to the head's own sun (the training shades it on a held surface). MC (``kind="env"``) with
-    ``sun="probe"``: the same SG sky and sun (no floor) on MC's grid, the sky's lobes evaluated at its cells and the
-    sun's lobe (:meth:`_sky_on_grid`, :func:`sg_on_grid`, on a grid finer than the probe's), the sky and the sun's lobe
-    also returned apart (training shades the sun in closed form). With a light prior
-    (``prior_components`` > 0, :meth:`set_prior`), the K - 1 amplitudes come from the prior's map instead: its code
-    fitted to the mirror cue plus a learnt correction (:meth:`_prior_sky`)."""
+    - **Features** (:meth:`features`): a small CNN on the grid (wrap-around in azimuth), its middle layer scaled and
+      shifted by the global code; its last layer starts at zero, so the light starts as the projected cue.
+    - **Sky** (:meth:`sky`): K - 1 lobes at fixed, evenly spread axes whose amplitudes are the refined log map sampled
+      there (the sky, the ground, walls).
+    - **Sun** (:meth:`place_sun`): a distribution over the grid's cells, starting at the mirror cue's brightest region
+      (the cue read off the pixels that face the camera), shifted on paint by a learnt residual (a metal's cue is the
+      light's picture; paint adds its diffuse shading), above the horizon; its soft arg-max is the sun's axis, the
+      features there give its sharpness and intensity.
+    - SG (:meth:`sg_light`): the sky's lobes, the sun's, and on metal a K+1-th lobe on the sun's axis carrying what
+      the cue shows near it above the head's own sun (:func:`cue_sun_power`; training shades it on a held surface),
+      so that the image loss cannot switch the sun off. MC (:meth:`env_light`): the same sky and sun on MC's grid,
+      also returned apart (training shades the sun's lobe in closed form).
+    """
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
-                 max_log_radiance: float, code: int = 512, channels: int = 32, start: str = "luminance",
-                 prior_components: int = 0, sun: str = "learned", sun_axis: str = "head",
-                 sun_min_sharpness: float = SUN_BROADEST):
+                 max_log_radiance: float, code: int = 512, channels: int = 32):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
-        if kind == "sg" and lobes < 2:
+        if lobes < 2:
             raise ValueError(f"the probe light head needs at least 2 SG lobes (sky and sun), got {lobes}")
-        self.kind, self.lobes, self.height, self.width, self.start = kind, lobes, height, width, start
-        self.prior_components = prior_components
-        if sun not in ("learned", "probe"):
-            raise ValueError(f"the sun lobe is 'learned' or read from the 'probe', not {sun!r}")
-        self.sun_source = sun
-        if sun_axis not in ("head", "cue", "cue-on-metal"):
-            raise ValueError(f"the sun's axis is placed by the 'head' (the cue plus a learnt shift), the 'cue' alone, or "
-                             f"the 'cue-on-metal' (the shift scaled by 1 - metallic), not {sun_axis!r}")
-        self.sun_axis = sun_axis
-        if prior_components and kind != "sg":
-            raise ValueError("the light prior models the sky of SG light (its sun is a lobe); MC has no sun lobe")
+        self.kind, self.lobes, self.height, self.width = kind, lobes, height, width
         self.max_sharpness, self.max_log_radiance = max_sharpness, max_log_radiance
-        if not SUN_BROADEST <= sun_min_sharpness < max_sharpness:
-            raise ValueError(f"the sun lobe's least sharpness must be in [{SUN_BROADEST}, {max_sharpness:g}), got "
-                             f"{sun_min_sharpness}")
-        self.sun_min_sharpness = sun_min_sharpness
         cin = 8 + 3  # the grid and each cell's direction
         self.inp = nn.Conv2d(cin, channels, 3)
         self.film = nn.Linear(code, 2 * channels)  # the global code scales and shifts the features
@@ -239,105 +222,94 @@ class ProbeLightHead(nn.Module):
         self.register_buffer("cell_log_solid_angle", conventions.equirect_solid_angles(height, width).expand(
             -1, width).flatten().log(), persistent=False)
         self.log_gain = nn.Parameter(torch.zeros(()))
-        if kind == "sg" or sun == "probe":  # SG light: sky lobes at fixed axes and a sun (MC's probe sun: on its grid)
-            self.register_buffer("axes", fibonacci_axes(lobes - 1))
-            if kind == "env":  # MC's light's grid (not saved: derived from the probe grid's size)
-                self.register_buffer("fine_cell_dirs", conventions.equirect_directions(
-                    SUN_GRID_SCALE * height, SUN_GRID_SCALE * width).permute(2, 0, 1)[None], persistent=False)
-            self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
-            self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
-            self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
-            nn.init.zeros_(self.sun.weight)
-            with torch.no_grad():
-                self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
-        if prior_components:  # pipelines.light_prior: world-frame log-luminance mean and components, saved with the run
-            k = prior_components
-            self.register_buffer("prior_maps", torch.zeros(1, k + 1, height, width))
-            self.register_buffer("prior_std", torch.ones(k))
-            self.prior_code = nn.Linear(channels + code, k + 1)  # a correction to the fitted code (and level)
-            nn.init.zeros_(self.prior_code.weight)
-            nn.init.zeros_(self.prior_code.bias)
-
-    def set_prior(self, prior: dict) -> None:
-        """Copy a fitted prior (pipelines.light_prior.build) into the head."""
-        k = self.prior_components
-        if prior["basis"].shape[0] < k:
-            raise ValueError(f"the light prior has {prior['basis'].shape[0]} components, the model asks for {k}")
-        maps = torch.cat([prior["mean"][None], prior["basis"][:k]]).view(1, k + 1, self.height, self.width)
-        self.prior_maps.copy_(maps)
-        self.prior_std.copy_(prior["std"][:k])
-
-    def _prior_sky(self, grid: torch.Tensor, features: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, K-1) log luminance of the sky lobes: the prior's map that best explains the mirror cue where the
-        object shows it (a ridge fit of its code, weighted by coverage), plus a learnt correction."""
-        b, k = grid.shape[0], self.prior_components
-        maps = self.prior_maps.expand(b, -1, -1, -1)
-        world = lambda d: d @ probe_to_world.mT  # noqa: E731 (probe-frame rows -> world-frame rows)
-        cells = self.cell_dirs.flatten(2)[0].T.expand(b, -1, -1)
-        at_cells = sample_grid(maps, world(cells))  # (B, HW, K+1): the mean map and the components
-        at_axes = sample_grid(maps, world(self.axes.expand(b, -1, -1)))
-        y = torch.log(grid[:, :3].mean(1) + LOG_EPS).flatten(1) - at_cells[..., 0]
-        w = grid[:, 3].flatten(1).clamp(0, 1) * self.cell_log_solid_angle.exp() / (4 * math.pi)
-        design = torch.cat([torch.ones_like(at_cells[..., :1]), at_cells[..., 1:]], -1)  # level, components
-        reg = torch.diag(torch.cat([grid.new_zeros(1), PRIOR_STRENGTH / self.prior_std ** 2]))
-        normal = design.mT @ (w.unsqueeze(-1) * design) + reg + 1e-6 * torch.eye(k + 1, device=grid.device)
-        fitted = torch.linalg.solve(normal, (design.mT @ (w * y).unsqueeze(-1)))[..., 0]
-        c = fitted + self.prior_code(features)
-        return at_axes[..., 0] + c[:, :1] + (at_axes[..., 1:] * c[:, None, 1:]).sum(-1)
+        self.register_buffer("axes", fibonacci_axes(lobes - 1))
+        if kind == "env":  # MC's light's grid (not saved: derived from the probe grid's size)
+            self.register_buffer("fine_cell_dirs", conventions.equirect_directions(
+                SUN_GRID_SCALE * height, SUN_GRID_SCALE * width).permute(2, 0, 1)[None], persistent=False)
+        self.log_sharpness = nn.Parameter(torch.tensor(math.log(max(2.0, 2 * lobes ** 0.5))))
+        self.sun_temperature = nn.Parameter(torch.tensor(4.0))  # sun logits = t * log luminance + residual
+        self.sun = nn.Linear(channels + code, 4)  # sun sharpness and rgb intensity (log, relative)
+        nn.init.zeros_(self.sun.weight)
+        with torch.no_grad():
+            self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
 
     def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
 
-    def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor | None = None,
-                metal: torch.Tensor | None = None, sun_grid: torch.Tensor | None = None) -> dict:
-        """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
-        rotation from the probe frame to the world's (needed by the light prior, which lives in the world, and the
-        probe sun's horizon); metal (B,) how metallic each view's surface is predicted (needed by the probe sun);
-        sun_grid (B, 4, H, W) the mirror cue the sun is read off (default: ``grid``'s)."""
+    def features(self, grid: torch.Tensor, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C, H, W) features of the grid, and the (B, 4, H, W) residuals: log radiance (3), sun logit (1)."""
         b = grid.shape[0]
         x = torch.cat([compress_radiance(grid), self.cell_dirs.expand(b, -1, -1, -1)], 1)
         h = F.leaky_relu(self._conv(self.inp, x), 0.2)
         scale, shift = self.film(code).view(b, 2, -1, 1, 1).unbind(1)
         h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)
-        res = self._conv(self.out, h)
-        # starts as the mirror cue; by default its luminance: on glossy paint the cue's colour is mostly the paint's
-        cue = grid[:, :3] if self.start == "colour" else grid[:, :3].mean(1, keepdim=True)
-        log_map = torch.log(cue + LOG_EPS) + res[:, :3] + self.log_gain
-        if self.kind == "env" and self.sun_source != "probe":
-            return {"image": torch.exp(log_map.clamp_max(self.max_log_radiance)).permute(0, 2, 3, 1)}
-        if self.prior_components:
-            if probe_to_world is None:
-                raise ValueError("the light prior needs the probe frame's rotation to the world (probe_to_world)")
-            log_sky = self._prior_sky(grid, torch.cat([h.mean((2, 3)), code], -1), probe_to_world) + self.log_gain
-            amplitude = torch.exp(log_sky.clamp_max(self.max_log_radiance)).unsqueeze(-1).expand(-1, -1, 3)
-        else:
-            amplitude = torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))  # (B, K-1, 3)
-        sun_grid = grid[:, :4] if sun_grid is None else sun_grid
-        sun_axis, log_p, sun = self._sun(sun_grid, res, h, code, probe_to_world, metal)
-        sun_sharpness, sun_amplitude = self._sun_lobe(sun, amplitude.mean(1))
-        if self.kind == "env":  # MC's probe sun: SG's light on a grid, so that only the sun can be compact
-            # "image" is the light (what predict writes, what evaluate scores), on a grid SUN_GRID_SCALE times finer
-            # than the probe's so that the sun keeps about its lobe's size; training shades "sky" by MC and the
-            # sun's SG lobe in closed form (Prediction.sky_and_sun)
-            sun = sg_on_grid(sun_axis, sun_sharpness, sun_amplitude, self.fine_cell_dirs)
-            clamp = lambda image: image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)  # noqa: E731
-            return {"image": clamp(self._sky_on_grid(amplitude, self.fine_cell_dirs) + sun),
-                    "sky": clamp(self._sky_on_grid(amplitude, self.cell_dirs)), "sun_axis": sun_axis,
-                    "sun_sharpness": sun_sharpness, "sun_amplitude": sun_amplitude, "sun_log_p": log_p}
-        suns = [sun_amplitude]
-        if self.sun_source == "probe":  # at least the cue's power near the axis, on metal
-            cells = self.cell_dirs.flatten(2)[0].T
-            power = cue_sun_power(sun_grid.detach(), sun_axis.detach(), cells, self.cell_log_solid_angle.exp())
-            # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
-            # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
-            floor = metal.detach().view(-1, 1) * power / sg_integral(sun_sharpness.detach())
-            suns.append((floor - sun_amplitude).clamp_min(0))  # what the cue adds: a second lobe, same axis and size
-        k, n = self.lobes - 1, len(suns)
-        return {"axis": torch.cat([self.axes.expand(b, k, 3), sun_axis.unsqueeze(1).expand(b, n, 3)], 1),
-                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sun_sharpness.expand(b, n)], 1),
-                "amplitude": torch.cat([amplitude, torch.stack(suns, 1)], 1), "sun_log_p": log_p}
+        return h, self._conv(self.out, h)
 
-    def _sky_on_grid(self, amplitude: torch.Tensor, cell_dirs: torch.Tensor) -> torch.Tensor:
+    def sky(self, grid: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
+        """(B, K-1, 3) the sky lobes' amplitudes: the mirror cue's luminance (on glossy paint the cue's colour is
+        mostly the paint's), refined by the residual, sampled at the fixed axes."""
+        cue = grid[:, :3].mean(1, keepdim=True)
+        log_map = torch.log(cue + LOG_EPS) + residual[:, :3] + self.log_gain
+        return torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))
+
+    def place_sun(self, sun_grid: torch.Tensor, residual: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
+            probe_to_world: torch.Tensor, metal: torch.Tensor, sky: torch.Tensor) -> tuple:
+        """The sun: its axis (B, 3), its distribution over cells as log-probabilities (B, H*W), its sharpness (B, 1)
+        and amplitude (B, 3) from the features where it is, relative to the sky's mean (B, 3)."""
+        luminance = sun_grid[:, :3].mean(1, keepdim=True)
+        shift = residual[:, 3:] * (1 - metal.detach()).view(-1, 1, 1, 1)  # a metal's cue stays where it shows
+        logits = (self.sun_temperature * torch.log(luminance + LOG_EPS) + shift).flatten(1)
+        cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
+        # above the horizon: the world's up in the probe frame
+        logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
+        p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
+        log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # (p.log() would underflow to -inf)
+        axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
+        pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
+        raw = self.sun(torch.cat([pooled, code], -1))
+        sharpness = raw[:, :1].exp().clamp(SUN_BROADEST, self.max_sharpness)
+        amplitude = torch.exp((raw[:, 1:] + sky.log()).clamp_max(self.max_log_radiance))
+        return axis, log_p, sharpness, amplitude
+
+    def forward(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor, metal: torch.Tensor,
+                sun_grid: torch.Tensor | None = None) -> dict:
+        """grid (B, 8, H, W) from :func:`probe_grid`; code (B, C) the global code; probe_to_world (B, 3, 3) the
+        rotation from the probe frame to the world's (the sun's horizon); metal (B,) how metallic each view's
+        surface is predicted; sun_grid (B, 4, H, W) the mirror cue the sun is read off (the model's: the facing
+        pixels', :func:`facing_mirror_cue`; default: ``grid``'s own)."""
+        sun_grid = grid[:, :4] if sun_grid is None else sun_grid
+        h, residual = self.features(grid, code)
+        sky = self.sky(grid, residual)
+        sun = self.place_sun(sun_grid, residual, h, code, probe_to_world, metal, sky.mean(1))
+        return self.env_light(sky, *sun) if self.kind == "env" else self.sg_light(sky, *sun, sun_grid, metal)
+
+    def sg_light(self, sky: torch.Tensor, axis: torch.Tensor, log_p: torch.Tensor, sharpness: torch.Tensor,
+                 amplitude: torch.Tensor, sun_grid: torch.Tensor, metal: torch.Tensor) -> dict:
+        """SG lobes: the sky's, the sun's, and the sun's floor on metal (what the cue adds to the head's sun)."""
+        b, k = sky.shape[0], self.lobes - 1
+        cells = self.cell_dirs.flatten(2)[0].T
+        power = cue_sun_power(sun_grid.detach(), axis.detach(), cells, self.cell_log_solid_angle.exp())
+        # a metal shows only what it reflects, so its cue is a bound on the sun; paint adds its diffuse shading
+        # to the cue (on glossy cars the bound would give the sun ~80 % of the light's power)
+        floor = metal.detach().view(-1, 1) * power / sg_integral(sharpness.detach())
+        suns = torch.stack([amplitude, (floor - amplitude).clamp_min(0)], 1)  # a second lobe, same axis and size
+        return {"axis": torch.cat([self.axes.expand(b, k, 3), axis.unsqueeze(1).expand(b, 2, 3)], 1),
+                "sharpness": torch.cat([self.log_sharpness.exp().expand(b, k), sharpness.expand(b, 2)], 1),
+                "amplitude": torch.cat([sky, suns], 1), "sun_log_p": log_p}
+
+    def env_light(self, sky: torch.Tensor, axis: torch.Tensor, log_p: torch.Tensor, sharpness: torch.Tensor,
+                  amplitude: torch.Tensor) -> dict:
+        """MC's light: SG's sky and sun on a grid, so that only the sun can be compact. "image" is the light (what
+        predict writes, what evaluate scores), on a grid SUN_GRID_SCALE times finer than the probe's so that the
+        sun keeps about its lobe's size; training shades "sky" by MC and the sun's SG lobe in closed form
+        (Prediction.sky_and_sun)."""
+        sun = sg_on_grid(axis, sharpness, amplitude, self.fine_cell_dirs)
+        clamp = lambda image: image.clamp_max(math.exp(self.max_log_radiance)).permute(0, 2, 3, 1)  # noqa: E731
+        return {"image": clamp(self.sky_on_grid(sky, self.fine_cell_dirs) + sun),
+                "sky": clamp(self.sky_on_grid(sky, self.cell_dirs)), "sun_axis": axis,
+                "sun_sharpness": sharpness, "sun_amplitude": amplitude, "sun_log_p": log_p}
+
+    def sky_on_grid(self, amplitude: torch.Tensor, cell_dirs: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) MC's grid of an SG sky: amplitudes (B, K-1, 3) at the fixed axes, evaluated at the cells of
         ``cell_dirs`` (1, 3, H, W). The sun's lobe is added to it (:func:`sg_on_grid`); on a free grid the sky
         held the highlights itself, at the raw cue's brightest cell, and the loss left the sun 3 % of the power."""
@@ -345,40 +317,5 @@ class ProbeLightHead(nn.Module):
         lobes = torch.exp(self.log_sharpness.exp() * (cells @ self.axes.T - 1))  # (H*W, K-1)
         return torch.einsum("nk,bkc->bcn", lobes, amplitude).view(-1, 3, *cell_dirs.shape[2:])
 
-    def _sun(self, sun_grid: torch.Tensor, res: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
-             probe_to_world: torch.Tensor | None, metal: torch.Tensor | None) -> tuple:
-        """The sun's axis (B, 3), its distribution over cells as log-probabilities (B, H*W) and the sun's raw
-        parameters (B, 4: log sharpness, log rgb intensity relative to the sky) from the features where it is."""
-        luminance = sun_grid[:, :3].mean(1, keepdim=True)
-        logits = self.sun_temperature * torch.log(luminance + LOG_EPS)
-        if self.sun_axis != "cue":  # a learnt shift of the cue's; "cue": the sun stays where the geometry puts it
-            shift = res[:, 3:]
-            if self.sun_axis == "cue-on-metal":  # a metal's cue is the light's picture; paint's adds its shading
-                if metal is None:
-                    raise ValueError("sun_axis 'cue-on-metal' needs how metallic the surface is (metal)")
-                shift = shift * (1 - metal.detach()).view(-1, 1, 1, 1)
-            logits = logits + shift
-        logits = logits.flatten(1)
-        cells = self.cell_dirs.flatten(2)[0].T  # (H*W, 3), probe frame
-        if self.sun_source == "probe":  # the sun is above the horizon: the world's up in the probe frame
-            if probe_to_world is None or metal is None:
-                raise ValueError("the probe sun needs the probe frame's rotation to the world (probe_to_world) and "
-                                 "how metallic the surface is (metal)")
-            logits = logits + F.logsigmoid(cells @ probe_to_world[:, 2].T / HORIZON_SOFTNESS).T
-        p = torch.softmax(logits + self.cell_log_solid_angle, -1)  # a distribution over cells
-        log_p = torch.log_softmax(logits + self.cell_log_solid_angle, -1)  # (p.log() would underflow to -inf)
-        sun_axis = F.normalize(p @ cells, dim=-1, eps=1e-6)
-        pooled = (h.flatten(2) * p.unsqueeze(1)).sum(-1)  # features where the sun is
-        return sun_axis, log_p, self.sun(torch.cat([pooled, code], -1))
-
-    def _sun_lobe(self, sun: torch.Tensor, sky: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, 1) sharpness and (B, 3) amplitude of the sun lobe from its raw parameters and the sky's mean (B, 3)."""
-        # the floor shifts the head's sharpness rather than clamping it (a clamped lobe gets no gradient)
-        shift = self.sun_min_sharpness - SUN_BROADEST
-        sharpness = sun[:, :1].exp().clamp(SUN_BROADEST, self.max_sharpness - shift) + shift
-        return sharpness, torch.exp((sun[:, 1:] + sky.log()).clamp_max(self.max_log_radiance))
-
-    @property
-    def sun_lobes(self) -> int:
-        """How many of the last SG lobes are the sun: its own, and (sun "probe") what the cue adds to it."""
-        return 2 if self.sun_source == "probe" else 1
+    # how many of the last SG lobes are the sun: its own, and what the cue adds to it
+    sun_lobes = 2

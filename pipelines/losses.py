@@ -23,6 +23,12 @@ def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
+def image_space(rgb_linear: torch.Tensor, clipped: bool = False) -> torch.Tensor:
+    """Where the image losses compare: :func:`hdr_srgb`, or with ``clipped`` the display sRGB of an 8-bit picture
+    (clipped at 1: no gradient in highlights), the paper's."""
+    return hdr_srgb(rgb_linear.clamp_max(1.0) if clipped else rgb_linear)
+
+
 def normal_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """1 - cos between two normal renders' (``Renderer.render_normals(...).image``: (B, H, W, 4) normal and
     coverage) over the pixels both cover."""
@@ -79,53 +85,6 @@ def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int 
     return total / scales
 
 
-# ----------------------------------------------------------------------------- terms of the named variants
-
-def albedo_consistency_loss(texture: torch.Tensor) -> torch.Tensor:
-    """L1 between the albedos predicted from an object's two views; texture (2B, Ht, Wt, 3), prediction 2i + j
-    of item i, view j. Albedo is view-independent; reflections copied into the look-up move between views."""
-    tex = texture.view(-1, 2, *texture.shape[1:])
-    return (tex[:, 0] - tex[:, 1]).abs().mean()
-
-
-def darker_view_albedo_loss(texture: torch.Tensor, facing: torch.Tensor | None) -> torch.Tensor:
-    """Mean amount by which each albedo texel exceeds the darker of its object's two views, over texels that
-    face both input cameras. texture (2B, Ht, Wt, 3) and facing (2B, Ht, Wt), prediction 2i + j of item i, view j.
-    The darker value is a fixed target, so only the brighter view's albedo is pulled (no collapse to a mean)."""
-    if facing is None:
-        raise ValueError("the darker-view albedo term needs the projected texture (--texture projected)")
-    tex = texture.unflatten(0, (-1, 2))
-    both = ((facing.unflatten(0, (-1, 2)) > 0).all(1)).unsqueeze(1).unsqueeze(-1)  # (B, 1, Ht, Wt, 1)
-    darker = tex.min(1, keepdim=True).values.detach()
-    excess = torch.where(tex > darker, tex - darker, 0.0) * both  # no gradient to the darker view itself
-    return excess.sum() / (both.sum() * 2 * 3).clamp_min(1)
-
-
-def albedo_detail(flat_iterations: int, iteration: int | None) -> float:
-    """How much of the texture's detail the renders use at ``iteration`` under the flat-albedo curriculum of
-    ``flat_iterations`` (None: the trained model, full detail)."""
-    n = flat_iterations
-    return 1.0 if n <= 0 or iteration is None else min(1.0, max(0.0, (iteration - n) / n))
-
-
-def roughness_floor(start: float, iterations: int, iteration: int | None) -> float:
-    """The renders' least roughness at ``iteration`` under the roughness curriculum: ``start``, lowered linearly to 0
-    by two thirds of the run's ``iterations`` (None: the trained model, no floor). A blurred reflection changes
-    slowly with the normals, so the shape first fits the broad shading and meets the sharp reflection near its
-    basin (``pipelines.diagnose_shape``'s ``image-annealed`` fit)."""
-    if start <= 0 or iteration is None:
-        return 0.0
-    return start * max(0.0, 1 - iteration / max(1, 2 * iterations // 3))
-
-
-def with_albedo_detail(texture: torch.Tensor, detail: float) -> torch.Tensor:
-    """(B, Ht, Wt, 3) texture -> each texture's mean plus ``detail`` times its variation about the mean."""
-    if detail >= 1.0:
-        return texture  # exactly, not mean + (texture - mean)
-    mean = texture.mean((1, 2), keepdim=True)
-    return mean + detail * (texture - mean)
-
-
 @functools.lru_cache(maxsize=1)
 def _probe_scene() -> ProbeScene:
     """The probe spheres seen from four directions around the horizon, 20 degrees above it."""
@@ -167,7 +126,7 @@ def supervised_light_loss(light, envmaps: torch.Tensor, kind: str) -> torch.Tens
         pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
         return (torch.log1p(pred_env) - torch.log1p(env)).abs().mean()
     if kind != "probe":
-        raise ValueError(f"light_supervision must be '', 'map' or 'probe' here ('sun': sun_supervision_loss), got {kind!r}")
+        raise ValueError(f"the light is supervised on the 'map' or the 'probe' here ('sun': sun_supervision_loss), got {kind!r}")
     scene = _probe_scene()
     metal = lambda table, k: scene.render_table(table[k:k + 1].expand(len(scene.view), -1, -1, -1), ["metal"])["metal"]  # noqa: E731
     gt = [metal(envmaps, i) for i in range(len(envmaps))]  # once per item: both its views share the map

@@ -27,33 +27,23 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dibrpp import conventions
 from dibrpp.brdf import MIN_ALPHA
 from dibrpp.camera import Cameras
-from dibrpp.mesh import Meshes, icosphere, uniform_laplacian, vertex_normals
+from dibrpp.mesh import Meshes, icosphere, vertex_normals
 
-from .light_probe import SUN_BROADEST, ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
-from .model_input import MAX_LOG_RADIANCE, clip_input, decode_premultiplied, input_grid, input_radiance
+from .earlier_runs import earlier_model_config
+from .light_probe import ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
+from .model_input import MAX_LOG_RADIANCE, clip_input, input_grid, input_radiance
 from .pixel_normals import PixelNormalNet
 from .prediction import LIGHT_KINDS, Prediction, white_balance
-from .shape_detail import PixelAlignedDetail
 from .template import mirror_index, texel_barycentrics
 
-MODEL_VERSION = 8  # bump when parameters or their meaning change: old checkpoints are refused or migrated
+MODEL_VERSION = 9  # bump when parameters or their meaning change: a checkpoint of another version is refused
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
-# fields added since an older version, with the value that reproduces the model that version trained
-_CLIPPED = {"input_range": "clipped"}
-MIGRATIONS = {2: {"light_scale": "softplus", "light_head": "global", **_CLIPPED}, 3: {"light_head": "global", **_CLIPPED},
-              4: {"probe_start": "colour", "probe_samples": "texels", **_CLIPPED},
-              5: {"probe_samples": "texels", **_CLIPPED}, 6: _CLIPPED, 7: _CLIPPED}
-
 
 # the allowed values of the model's string options
-CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_scale": ("log", "softplus"),
-           "probe_start": ("luminance", "colour"), "probe_samples": ("pixels", "texels"), "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "sun_lobe": ("learned", "probe"), "shape_detail": ("none", "features"),
-           "sun_cue": ("all", "facing"), "sun_axis": ("head", "cue", "cue-on-metal"),
-           "probe_normals": ("surface", "pixels")}
+CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_head": ("global", "probe"),
+           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
 
 
 @dataclass
@@ -70,39 +60,14 @@ class ModelConfig:
     texture_width: int = 64
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
     light_colour: str = "white"  # white: white-balanced light | free: any colour
-    # softplus: SG sharpness / amplitude and env radiance grow linearly with the head's output | log: they are
-    # exp(output), so a step changes them by a factor and a sharp, bright sun is a few steps away (an ablation:
-    # it made one lobe dominant but did not improve the light metrics;
-    # docs/experiments.md#4-seven-principled-changes-none-better)
-    light_scale: str = "softplus"
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.light_probe), in the probe frame
     light_head: str = "global"
-    # the probe head's first light: the mirror cue's luminance (grey) or its colour (which carries the paint's)
-    probe_start: str = "luminance"
-    # where the probe head reads the input: at the pixels the predicted surface covers (rasterised) or at its
-    # texels' projections (version 5; docs/experiments.md, entry 12)
-    probe_samples: str = "pixels"
-    # components of the light prior (pipelines.light_prior) that the probe head's SG sky lives in; 0: none
-    light_prior: int = 0
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
-    # clipped at 1, as an 8-bit picture shows it (versions up to 7)
+    # clipped at 1, as an 8-bit picture shows it
     input_range: str = "full"
-    # the probe head's SG sun: its power learned, or at least what the mirror cue shows near its axis, with the
-    # axis above the horizon (ProbeLightHead)
-    sun_lobe: str = "learned"
-    # the pixels the SG sun is read off: all that the surface covers, or those facing the camera (not grazing)
-    sun_cue: str = "all"
-    # where the SG sun's axis is: the cue's soft arg-max shifted by a learnt residual (head), the cue's alone (cue),
-    # or the shift scaled by 1 - the predicted metallic (cue-on-metal)
-    sun_axis: str = "head"
-    # the least sharpness of the probe head's sun lobe (0.5: as broad as a hemisphere)
-    sun_min_sharpness: float = SUN_BROADEST
-    # features: each vertex of the global shape displaced along its normal by what pixel-aligned image features
-    # show where it projects (pipelines.shape_detail); none: the global shape alone
-    shape_detail: str = "none"
     # the normals the probe head's mirror cue reads: the predicted surface's, or, in evaluation (not in training),
-    # an image-space network's (pipelines.pixel_normals, fitted to the GT mesh's; the probe head reading the pixels)
+    # an image-space network's (pipelines.pixel_normals, fitted to the GT mesh's)
     probe_normals: str = "surface"
     env_height: int = 16
     env_width: int = 32
@@ -118,20 +83,18 @@ class ModelConfig:
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
-        if self.probe_normals == "pixels" and (self.light_head != "probe" or self.probe_samples != "pixels"):
+        if self.light_head == "probe" and self.shading == "sh":
+            raise ValueError("the probe light head predicts SG lobes or env maps, not SH")
+        if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
-                             "light_head 'probe' and probe_samples 'pixels'")
+                             "light_head 'probe'")
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
-        if d.get("version") in MIGRATIONS:
-            d = {**d, **MIGRATIONS[d["version"]], "version": MODEL_VERSION}
-        if d.get("version") != MODEL_VERSION:
-            raise ValueError(f"the checkpoint was written by model version {d.get('version')}, this code is version "
-                             f"{MODEL_VERSION}; retrain it (e.g. `make train-glossy`) or check out the matching release")
+        d = earlier_model_config(d, MODEL_VERSION)
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names - {"version"}
         if unknown:
@@ -146,13 +109,14 @@ def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.
     return lo + (hi - lo) * t.clamp(0, 1)
 
 
+def _inverse_softplus(value: torch.Tensor) -> torch.Tensor:
+    return value.expm1().log()
+
+
 @dataclass
 class TexelView:
-    """The texels of the predicted surface seen from the input camera: world-frame unit normals and directions
-    to the camera (B, T, 3), how squarely each faces the camera (B, T; 0: away), and where it projects
-    (B, Ht, Wt, 2; grid_sample coordinates)."""
-    normals: torch.Tensor
-    to_camera: torch.Tensor
+    """The texels of the predicted surface seen from the input camera: how squarely each faces the camera (B, T;
+    0: away), and where it projects (B, Ht, Wt, 2; grid_sample coordinates)."""
     facing: torch.Tensor
     grid: torch.Tensor
 
@@ -192,18 +156,12 @@ class Encoder(nn.Module):
         self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
                                      nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
-        if c.shape_detail == "features":
-            self.shape_detail = PixelAlignedDetail(w, uniform_laplacian(template.faces, template.verts.shape[1]))
         if c.probe_normals == "pixels":
             with torch.random.fork_rng(devices=[]):  # its own draws: every other weight starts as the default's
                 self.pixel_normals = PixelNormalNet()
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             start=c.probe_start, prior_components=c.light_prior, sun=c.sun_lobe,
-                                             sun_axis=c.sun_axis, sun_min_sharpness=c.sun_min_sharpness)
-            self.register_buffer("texel_solid_angle", conventions.equirect_solid_angles(
-                c.texture_height, c.texture_width).expand(-1, c.texture_width).flatten())
+            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE)
         else:
             light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
             self.light_head = nn.Linear(512, light_out)
@@ -232,20 +190,11 @@ class Encoder(nn.Module):
                 b = self.light_head.bias.view(k, 7)
                 b[:, :3] = axes
                 sharpness, amplitude = max(2.0, 0.5 * k ** 0.5 * 4), F.softplus(torch.tensor(-2.0))
-                b[:, 3], b[:, 4:] = self._inverse_positive(torch.tensor(sharpness)), self._inverse_positive(amplitude)
+                b[:, 3], b[:, 4:] = _inverse_softplus(torch.tensor(sharpness)), _inverse_softplus(amplitude)
             elif kind == "sh":
                 self.light_head.bias.view(9, 3)[0] = 1.5  # ambient start
             else:
-                self.light_head.bias.fill_(float(self._inverse_positive(F.softplus(torch.tensor(-0.5)))))
-
-    def _positive(self, raw: torch.Tensor) -> torch.Tensor:
-        """A light scale (SG sharpness or amplitude, env radiance) from a head output."""
-        if self.config.light_scale == "log":
-            return torch.exp(raw.clamp_max(MAX_LOG_RADIANCE))
-        return F.softplus(raw)
-
-    def _inverse_positive(self, value: torch.Tensor) -> torch.Tensor:
-        return value.log() if self.config.light_scale == "log" else value.expm1().log()
+                self.light_head.bias.fill_(float(_inverse_softplus(F.softplus(torch.tensor(-0.5)))))
 
     def template(self) -> Meshes:
         return Meshes(self.template_dirs, self.faces, self.uvs, self.face_uvs)
@@ -274,8 +223,7 @@ class Encoder(nn.Module):
     def _texel_view(self, verts: torch.Tensor, cameras: Cameras | None) -> "TexelView":
         """Where each texel of the predicted surface lies in the input view, and which way it faces."""
         if cameras is None:
-            raise ValueError("a projected texture and the probe light head need the input cameras: call the encoder "
-                             "with cameras=...")
+            raise ValueError("a projected texture needs the input cameras: call the encoder with cameras=...")
         c = self.config
         b = verts.shape[0]
         corners = self.faces[self.texel_face]  # (T, 3) vertex indices
@@ -285,7 +233,7 @@ class Encoder(nn.Module):
         to_cam = F.normalize(cameras.centers.to(pos).unsqueeze(1) - pos, dim=-1)
         facing = (nrm * to_cam).sum(-1).clamp_min(0)
         grid = input_grid(pos, cameras).view(b, c.texture_height, c.texture_width, 2)
-        return TexelView(nrm, to_cam, facing, grid)
+        return TexelView(facing, grid)
 
     def _projected(self, stem, images, texels: "TexelView") -> torch.Tensor:
         """What the input view shows at each texel of the predicted surface: colour and alpha, stem
@@ -297,21 +245,15 @@ class Encoder(nn.Module):
         facing = texels.facing.view(b, 1, c.texture_height, c.texture_width)
         return torch.cat([seen * (facing > 0), facing], 1)
 
-    def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, texels: "TexelView", cameras: Cameras,
-                     code: torch.Tensor, metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
+    def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, cameras: Cameras, code: torch.Tensor,
+                     metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
         """The light read from the input through the predicted surface (pipelines.light_probe); ``pixel_normals``
         (B, S, S, 3): the normals its pixels read instead of the surface's (held: fitted apart from the model)."""
         b = images.shape[0]
-        if self.config.probe_samples == "pixels":
-            normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
-                                                                 *input_radiance(images))
-            if pixel_normals is not None:
-                normals = torch.where(weight.unsqueeze(-1) > 0, pixel_normals.detach().flatten(1, 2), normals)
-        else:
-            seen = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros").flatten(2).mT
-            radiance = decode_premultiplied(seen[..., :3], seen[..., 3:])
-            weight = texels.facing * seen[..., 3].clamp(0, 1) * self.texel_solid_angle
-            normals, to_camera = texels.normals, texels.to_camera
+        normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
+                                                             *input_radiance(images))
+        if pixel_normals is not None:
+            normals = torch.where(weight.unsqueeze(-1) > 0, pixel_normals.detach().flatten(1, 2), normals)
         return self.light_from_samples(normals, to_camera, radiance, weight,
                                        cameras.world_to_camera.to(images).expand(b, 4, 4), code, metallic)
 
@@ -321,8 +263,7 @@ class Encoder(nn.Module):
         """The probe head's light from surface samples (light_probe.probe_grid's arguments) and the global code."""
         h, w = self.config.env_height, self.config.env_width
         grid = probe_grid(normals, to_camera, radiance, weight, world_to_camera, h, w)
-        sun_grid = (facing_mirror_cue(normals, to_camera, radiance, weight, world_to_camera, h, w)
-                    if self.config.sun_cue == "facing" else None)
+        sun_grid = facing_mirror_cue(normals, to_camera, radiance, weight, world_to_camera, h, w)
         return self.light_head(grid, code, world_to_probe(world_to_camera).mT, metallic, sun_grid)
 
     def material_parameters(self, code: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -341,18 +282,10 @@ class Encoder(nn.Module):
         projected texture and the probe light head)."""
         c = self.config
         images = self.visible_input(images)
-        levels = [self.stem(images)]  # stem, then each backbone level (the shape detail's pyramid)
-        for block in self.backbone:
-            levels.append(block(levels[-1]))
-        stem, f = levels[0], self.fc(levels[-1])
+        stem = self.stem(images)
+        f = self.fc(self.backbone(stem))
         verts = self._shape(self.shape_head(f))
-        if c.shape_detail == "features":
-            if cameras is None:
-                raise ValueError("a pixel-aligned shape detail needs the input cameras: call the encoder with cameras=...")
-            verts = verts + self.shape_detail(verts.detach(), self.faces, self.mirror, self.template_dirs, images,
-                                              levels, f, cameras)
-        needs_texels = c.texture == "projected" or (c.light_head == "probe" and c.probe_samples == "texels")
-        texels = self._texel_view(verts.detach(), cameras) if needs_texels else None
+        texels = self._texel_view(verts.detach(), cameras) if c.texture == "projected" else None
         texture, facing = self._texture(f, stem, images, texels)
         roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
@@ -362,7 +295,9 @@ class Encoder(nn.Module):
         if c.probe_normals == "pixels" and not self.training:
             pixel_normals = self.pixel_normals(images, cameras.world_to_camera.to(images).expand(images.shape[0], 4, 4))
         if c.light_head == "probe":
-            light = self._probe_light(images, verts.detach(), texels, cameras, f, metallic, pixel_normals)
+            if cameras is None:
+                raise ValueError("the probe light head needs the input cameras: call the encoder with cameras=...")
+            light = self._probe_light(images, verts.detach(), cameras, f, metallic, pixel_normals)
         else:
             light = self._light_from_code(f)
         if c.light_colour == "white":
@@ -378,10 +313,10 @@ class Encoder(nn.Module):
         if kind == "sg":
             raw = raw.view(b, c.lobes, 7)
             light = {"axis": F.normalize(raw[..., :3], dim=-1, eps=1e-6),
-                     "sharpness": (self._positive(raw[..., 3]) + 0.5).clamp_max(MAX_SHARPNESS),
-                     "amplitude": self._positive(raw[..., 4:])}
+                     "sharpness": (F.softplus(raw[..., 3]) + 0.5).clamp_max(MAX_SHARPNESS),
+                     "amplitude": F.softplus(raw[..., 4:])}
         elif kind == "sh":
             light = {"coeffs": raw.view(b, 9, 3)}
         else:
-            light = {"image": self._positive(raw.view(b, c.env_height, c.env_width, 3))}
+            light = {"image": F.softplus(raw.view(b, c.env_height, c.env_width, 3))}
         return light

@@ -1,4 +1,4 @@
-"""The training objective (eq. 8 and the regularisers), in two parts that a variant changes separately:
+"""The training objective (eq. 8 and the regularisers), in two parts:
 
 - :func:`render_plan`: which prediction is rendered in which view, lit by whose light, against which image;
 - :func:`loss_terms`: which loss terms apply to those renders, with their weights.
@@ -18,9 +18,8 @@ from dibrpp.shading import GBuffer
 
 from .config import SG_LIGHT, TrainConfig
 from .light_probe import world_to_probe
-from .losses import (albedo_consistency_loss, albedo_detail, darker_view_albedo_loss, foreground_l1, gradient_loss,
-                     hdr_srgb, normal_loss, roughness_floor, soft_iou_loss, sun_supervision_loss, supervised_light_loss,
-                     with_albedo_detail)
+from .losses import (foreground_l1, gradient_loss, image_space, normal_loss, soft_iou_loss, sun_supervision_loss,
+                     supervised_light_loss)
 from .model_input import encoder_input
 
 
@@ -39,54 +38,29 @@ class RenderPlan:
     lit_by: torch.Tensor
 
 
-def render_plan(batch_items: int, partner: torch.Tensor, config: TrainConfig) -> RenderPlan:
+def render_plan(batch_items: int, config: TrainConfig) -> RenderPlan:
     """Eq. 8: every prediction in both views of its pair, lit by the light predicted from the view it is rendered
-    in, and (``cross_view_light`` "both", the default) each cross-view render again under the prediction's own
-    light; the variants change who is rendered where (``cross_view_only``) or whose light and image the
-    cross-view renders use (``cross_view_light``, ``shared_light``, ``swap_light``)."""
+    in; with ``cross_view_light`` "both" (the default) each cross-view render again under the prediction's own
+    light, read from its own view: one world light has to explain the highlights of both views, where the light
+    read from the other view can follow its wrong normals."""
     b = batch_items
     src = torch.arange(b * 2).view(b, 2).repeat_interleave(2, dim=1).reshape(-1)  # (b, [i1 i1 i2 i2])
     dst = torch.arange(b * 2).view(b, 2).repeat(1, 2).reshape(-1)  # (b, [v1 v2 v1 v2])
-    if config.cross_view_only:
-        # ... only in the other view: a texture that copies the input view's highlights and reflections gains
-        # nothing (they move between views), so they have to come from the light and the specular lobe
-        keep = src != dst
-        src, dst = src[keep], dst[keep]
     lit_by = dst.clone()
     cross = src != dst
-    partner_view = 2 * partner[dst // 2] + dst % 2  # the same view of the render's partner item
-    if config.cross_view_light == "own":
-        # ... lit by the prediction's own light, read from its own view: one world light has to explain the
-        # highlights of both views, where the light read from the other view can follow its wrong normals
-        lit_by[cross] = src[cross]
-    elif config.cross_view_light == "both":  # ... under each of the two lights (the cross-view renders twice)
+    if config.cross_view_light == "both":  # ... under each of the two lights (the cross-view renders twice)
         src, dst, lit_by = torch.cat([src, src[cross]]), torch.cat([dst, dst[cross]]), torch.cat([lit_by, src[cross]])
-    if config.shared_light:
-        # ... but across views with the light predicted from the partner: another object under the same
-        # env map. One world light must then light both objects, so it cannot carry one object's blur or
-        # tint: what differs between them has to go to their materials.
-        lit_by[cross] = partner_view[cross]
-    if config.swap_light:
-        # ... in the partner's view instead, against its image and with its light: the same object under
-        # another env map. Only the light differs between the two images, so whatever the albedo copied from
-        # one map's reflections is wrong under the other and has to come from the light
-        dst[cross] = partner_view[cross]
-        lit_by = dst.clone()
     return RenderPlan(src, dst, lit_by)
-
-
-def batch_pairing(config: TrainConfig) -> str:
-    """How TrainingViews.batch pairs the items for this config's render plan."""
-    return "shared-light" if config.shared_light else "swap-light" if config.swap_light else ""
 
 
 def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
                laplacian, independent_rgb: torch.Tensor | None = None) -> tuple[dict, dict]:
     """({term: value}, {term: weight}): eq. 8's image terms on the renders ``out`` against ``target``, the
-    regularisers of the prediction ``pred``, and the terms of the variants whose weight is set.
-    ``independent_rgb``: the same renders with other MC samples (``mc_loss_samples`` "independent")."""
-    rgb, target_rgb = hdr_srgb(out.rgb), hdr_srgb(target[..., :3])
-    other = None if independent_rgb is None else hdr_srgb(independent_rgb)
+    regularisers of the prediction ``pred``, and a diagnostic's supervision of the light.
+    ``independent_rgb``: the same renders with other MC samples (``TrainConfig.independent_mc_samples``)."""
+    space = partial(image_space, clipped=config.image_loss == "clipped")
+    rgb, target_rgb = space(out.rgb), space(target[..., :3])
+    other = None if independent_rgb is None else space(independent_rgb)
     terms = {
         "image": foreground_l1(rgb, target_rgb, target[..., 3], independent=other),
         "iou": soft_iou_loss(out.silhouette, target[..., 3]),
@@ -94,27 +68,20 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:], independent=other),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
-    if config.light_supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
+    if config.supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
         terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"],
                                                           world_to_probe(views.world_to_camera.to(target)),
                                                           batch["envmap"], pred.config.env_height, pred.config.env_width)
         weights["light_supervision"] = SUN_SUPERVISION_WEIGHT
-    elif config.light_supervision:
+    elif config.supervision in ("light-map", "light-probe"):
         light = pred.light(views.world_to_camera)
-        terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.light_supervision)
+        terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.supervision.split("-")[1])
         weights["light_supervision"] = 1.0
-    if config.w_albedo_consistency:
-        terms["albedo_consistency"] = albedo_consistency_loss(pred.texture)
-        weights["albedo_consistency"] = config.w_albedo_consistency
-    if config.w_albedo_darker:
-        terms["albedo_darker"] = darker_view_albedo_loss(pred.texture, pred.facing)
-        weights["albedo_darker"] = config.w_albedo_darker
     return terms, weights
 
 
 def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, material, light: SGLight) -> RenderOutput:
-    """The render under SG ``light`` whose last lobe is the sun the probe head adds from the mirror cue (``sun_lobe``
-    "probe"): the other lobes (the head's own sun among them) shade the predicted surface as usual, that lobe
+    """The render under SG ``light`` whose last lobe is the sun the probe head adds from the mirror cue: the other lobes (the head's own sun among them) shade the predicted surface as usual, that lobe
     shades the same pixels with the surface's normals held (no gradient): it was read off that surface, so
     bending the surface to fit its highlight would only chase the surface's own error. SG shading is linear in
     the lobes, so the image is the full light's."""
@@ -142,38 +109,30 @@ def render_sky_and_sun(renderer: Renderer, meshes, cameras: Cameras, material, l
 
 
 def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig, laplacian,
-                     iteration: int | None = None, second: Renderer | None = None) -> tuple[torch.Tensor, dict, dict]:
-    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``iteration``
-    drives the curricula (None: the trained model, full detail). ``second``: the MC renderer with other samples
-    that ``mc_loss_samples`` "independent" asks for (without it, one render)."""
+                     second: Renderer | None = None) -> tuple[torch.Tensor, dict, dict]:
+    """Eq. (8) plus the regularisers. Returns (total, {term: value}, tensors for snapshots). ``second``: the MC
+    renderer with other samples under MC's probe sun (``TrainConfig.independent_mc_samples``; without it, one
+    render)."""
     img = batch["image"]  # (B, 2, S, S, 4) linear RGB + alpha
     b, s = img.shape[0], img.shape[2]
     flat = img.reshape(b * 2, s, s, 4)
     views = Cameras(batch["world_to_camera"].reshape(b * 2, 4, 4), batch["fov"].reshape(-1), s)
     pred = model(encoder_input(flat), views)  # prediction from every view: index 2i + j
-    plan = render_plan(b, batch["partner"], config)
+    plan = render_plan(b, config)
     shape_pred = pred.select(plan.src)
-    if config.oracle_roughness:
-        shape_pred.roughness = batch["roughness"][plan.src // 2].to(shape_pred.roughness)
-    floor = roughness_floor(config.roughness_anneal, config.iterations, iteration)
-    if floor > 0:
-        shape_pred.roughness = shape_pred.roughness.clamp_min(floor)
-    detail = albedo_detail(config.flat_albedo_iterations, iteration)
-    if detail < 1.0:
-        shape_pred.texture = with_albedo_detail(shape_pred.texture, detail)
     lighting = pred.select(plan.lit_by)
     light = lighting.light(views.world_to_camera[plan.lit_by])
     render = Renderer.__call__
-    if config.resolved_sun_lobe() == "probe" and config.shading in SG_LIGHT:  # the SG sun's floor lobe: a held surface
+    if config.has_probe_head() and config.shading in SG_LIGHT:  # the SG sun's floor lobe: a held surface
         render = render_sun_on_held_surface
-    elif config.resolved_sun_lobe() == "probe":  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
+    elif config.has_probe_head():  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
         render = partial(render_sky_and_sun, second=second)  # train passes a second renderer where the config asks
         light = lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
     out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, independent_rgb)
-    if config.shape_supervision:  # each prediction's normals in its own input view against the GT mesh's there
+    if config.supervision == "shape":  # each prediction's normals in its own input view against the GT mesh's there
         own = renderer.render_normals(pred.meshes(), views).image
         terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))
         weights["shape_supervision"] = 1.0

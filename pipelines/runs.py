@@ -17,7 +17,7 @@ import hashlib
 import json
 import pickle
 import zipfile
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -25,9 +25,10 @@ import torch
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
-from . import light_prior, pixel_normals
-from .config import VALUES_BEFORE_FIELD, ConfigError, TrainConfig
-from .model import Encoder, ModelConfig
+from . import pixel_normals
+from .config import ConfigError, TrainConfig
+from .earlier_runs import RetiredError, earlier_state_dict, earlier_train_config, is_earlier_config
+from .model import MODEL_VERSION, Encoder, ModelConfig
 from .model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
@@ -62,33 +63,28 @@ def read_json(path: Path, what: str):
     except OSError as e:
         raise DataError(f"{path}: cannot read the {what} ({e.strerror})") from e
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DataError(f"{path}: the {what} is not valid JSON ({e}); retrain the run or restore the file") from e
+        raise DataError(f"{path}: the {what} is not valid JSON ({e})") from e
 
 
 def load_config(run: Path) -> TrainConfig:
-    """The TrainConfig saved with a run, checked like any config; a field its file lacks (written before the field
-    existed) takes the value the run was trained with (config.VALUES_BEFORE_FIELD), not today's default."""
+    """The TrainConfig saved with a run, checked like any config (a run written before the retired experiments left
+    the code: :mod:`.earlier_runs`)."""
     path = Path(run) / CONFIG
     try:
         saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
-        config = TrainConfig.from_dict({**VALUES_BEFORE_FIELD, **saved} if isinstance(saved, dict) else saved)
-    except ConfigError as e:
+        if isinstance(saved, dict) and is_earlier_config(saved):
+            saved = earlier_train_config(saved, _trained_light_head(Path(run)))
+        config = TrainConfig.from_dict(saved)
+    except (ConfigError, RetiredError) as e:
         raise DataError(f"{path}: {e}") from e
-    return _auto_as_trained(config, Path(run))
-
-
-def _auto_as_trained(config: TrainConfig, run: Path) -> TrainConfig:
-    """An MC run saying 'auto' gets the light head and the sun its checkpoint's model was built with, so that it
-    loads, is labelled and resumes as what it was: until 2026-11-25 'auto' gave MC the global head, since then the
-    probe head; until 2026-11-27 it gave MC's probe head the learned sun, since then the probe sun."""
-    if config.shading != "mc" or "auto" not in (config.light_head, config.sun_lobe) or not (run / CHECKPOINT).exists():
-        return config  # nothing to read: the checkpoint is loaded once more only where 'auto' is ambiguous
-    trained = read_checkpoint(run / CHECKPOINT).get("model_config", {})
-    for name, values in (("light_head", ("global", "probe")), ("sun_lobe", ("learned", "probe"))):
-        resolved = getattr(config, f"resolved_{name}")()  # the sun's 'auto' after the head's
-        if getattr(config, name) == "auto" and trained.get(name) in values and trained[name] != resolved:
-            config = replace(config, **{name: trained[name]})
     return config
+
+
+def _trained_light_head(run: Path) -> str | None:
+    """The light head of a run's checkpointed model, where its config may say 'auto' (None: no checkpoint)."""
+    if not (run / CHECKPOINT).exists():
+        return None
+    return read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("light_head")
 
 
 def save_config(run: Path, config: TrainConfig) -> None:
@@ -149,7 +145,10 @@ def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
                         "it); retrain it, e.g. `make train-glossy`")
     try:
         model = Encoder(ModelConfig.from_dict(state["model_config"]))
-        model.load_state_dict(state["model"])
+        weights = state["model"]
+        if state["model_config"].get("version") != MODEL_VERSION:
+            weights = earlier_state_dict(weights)
+        model.load_state_dict(weights)
     except (ValueError, RuntimeError, TypeError) as e:
         raise DataError(f"{path}: {str(e).splitlines()[0]}") from e
     return state, model
@@ -184,28 +183,16 @@ def load_run(folder: Path) -> Run:
 
 # ----------------------------------------------------------------------------- what a run is built from
 
-def make_model(config: TrainConfig) -> Encoder:
-    prior = light_prior.build(Path(config.light_prior)) if config.light_prior else None
-    model = Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=config.image_size,
-                               predict_metallic=config.predict_metallic, texture=config.texture,
-                               light_colour=config.light_colour, light_scale=config.light_scale,
-                               light_head=config.resolved_light_head(), probe_start=config.probe_start,
-                               probe_samples=config.probe_samples, input_range=config.input_range,
-                               sun_lobe=config.resolved_sun_lobe(), sun_cue=config.resolved_sun_cue(),
-                               sun_axis=config.resolved_sun_axis(), sun_min_sharpness=config.sun_min_sharpness,
-                               shape_detail=config.shape_detail, probe_normals=config.probe_normals,
-                               light_prior=light_prior.COMPONENTS if prior else 0))
-    if prior:
-        model.light_head.set_prior(prior)
-    return model
+def make_model(config: TrainConfig, image_size: int) -> Encoder:
+    """The encoder a run trains on images of ``image_size`` (the dataset's)."""
+    return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=image_size,
+                               predict_metallic=bool(config.predict_metallic), texture=config.texture,
+                               light_colour=config.light_colour, light_head=config.model_light_head(),
+                               input_range=config.input_range, probe_normals=config.probe_normals))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
-    if config.light_lr_scale == 1.0:
-        return torch.optim.Adam(model.parameters(), lr=config.lr)  # one group, as runs before the option had
-    light = set(model.light_head.parameters())
-    return torch.optim.Adam([{"params": [p for p in model.parameters() if p not in light]},
-                             {"params": list(light), "lr": config.lr * config.light_lr_scale}], lr=config.lr)
+    return torch.optim.Adam(model.parameters(), lr=config.lr)
 
 
 def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: bool = False) -> None:
@@ -226,10 +213,9 @@ def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: b
 
 def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None) -> Renderer:
     """The renderer of a run (``spp`` overrides the training spp, e.g. for evaluation). ``training``: the losses
-    read the soft mask ("dibr") or the coverage ("edge_aa"), so with "dibr" the anti-aliased coverage (only the
-    image's alpha) is not computed."""
-    filter_width = 0.0 if training and config.visibility == "dibr" else RasterSettings.filter_width
-    settings = RasterSettings(cull_backfaces=True, visibility=config.visibility, filter_width=filter_width)
+    read the soft mask, so the anti-aliased coverage (only the image's alpha) is not computed."""
+    filter_width = 0.0 if training else RasterSettings.filter_width
+    settings = RasterSettings(cull_backfaces=True, visibility="dibr", filter_width=filter_width)
     return Renderer(config.shading, spp=spp or config.spp, seed=seed, raster_settings=settings,
                     compile=config.compile)
 
@@ -240,9 +226,9 @@ SECOND_SAMPLES_SEED = 1_000_003  # offsets the seeds of the second samples' rend
 def step_renderers(config: TrainConfig, iteration: int) -> tuple[Renderer, Renderer | None]:
     """The renderers of training step ``iteration`` (what train and the step benchmark shade with): MC's samples
     differ per iteration, reproducibly, at the config's samples for that iteration; the second, with independent
-    samples, where MC's image losses take their gradient from one (``resolved_mc_loss_samples``), else None."""
-    seed, spp = config.seed * 7919 + iteration, config.training_spp(iteration)
+    samples, where MC's image losses take their gradient from one (``independent_mc_samples``), else None."""
+    seed, spp = config.seed * 7919 + iteration, config.spp
     first = make_renderer(config, seed=seed, training=True, spp=spp)
-    if config.resolved_mc_loss_samples() != "independent":
+    if not config.independent_mc_samples():
         return first, None
     return first, make_renderer(config, seed=SECOND_SAMPLES_SEED + seed, training=True, spp=spp)

@@ -1,7 +1,8 @@
 """Single-image inverse rendering with the multi-view consistency loss (Sec. E.1-E.2).
 
     python -m pipelines.train --dataset data/glossy --shading sg --seed 0 --out runs/glossy/sg-seed0
-    python -m pipelines.train --variant swap-light ...   # a named variant (--list-variants)
+    python -m pipelines.train --variant published ...    # a named variant (--list-variants)
+    python -m pipelines.train --out runs/glossy/sg-seed0 --resume   # continue a run with its own settings
     torchrun --nproc_per_node 2 -m pipelines.train ...        # data-parallel (gloo on CPU, NCCL on GPU)
 
 Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape/texture/material/light
@@ -22,6 +23,8 @@ import sys
 import time
 from pathlib import Path
 
+from dataclasses import replace
+
 import torch
 import torch.distributed as dist
 
@@ -32,11 +35,11 @@ from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
-from . import light_prior, runs
-from .config import (PRESETS, VALUES_BEFORE_FIELD, ConfigError, TrainConfig, add_config_arguments, config_overrides,
-                     describe_variants, variant_runs)
+from . import runs
+from .config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides, describe_variants,
+                     variant_runs)
 from .dataset import TrainingViews
-from .objective import batch_pairing, multiview_losses
+from .objective import multiview_losses
 from .runs import load_checkpoint, make_model, make_optimizer, save_checkpoint
 
 def check_finite(terms: dict) -> None:
@@ -81,25 +84,41 @@ def _setup_distributed():
 
 
 # settings a resumed run may change: how long it trains and how it reports, not what it trains
-CHANGEABLE_ON_RESUME = ("iterations", "log_every", "snapshot_every", "checkpoint_every", "threads", "compile", "out",
-                        "device")
+CHANGEABLE_ON_RESUME = ("iterations", "log_every", "checkpoint_every", "threads", "compile", "out", "device")
 
 
 def check_resumable(run: Path, config: TrainConfig) -> None:
     """Refuse to resume a run with other settings than it was trained with, naming them."""
-    saved = runs.load_config(run).resolved_dict()  # a field written before it existed reads as what the run had then
-    written = runs.read_json(Path(run) / runs.CONFIG, "run's configuration")
-    known = set(written) | set(VALUES_BEFORE_FIELD)  # fields added since with today's default as their old value: skip
-    changed = [k for k, v in config.resolved_dict().items()
-               if k not in CHANGEABLE_ON_RESUME and k in known and saved.get(k) != v]
+    saved = runs.load_config(run).to_dict()
+    changed = [k for k, v in config.to_dict().items() if k not in CHANGEABLE_ON_RESUME and saved.get(k) != v]
     if changed:
         diff = ", ".join(f"{k}: {saved.get(k)!r} -> {getattr(config, k)!r}" for k in changed)
-        raise DataError(f"{run} was trained with other settings ({diff}); resume it with its own settings "
-                        f"(its {runs.CONFIG}), or train the new settings into another --out")
+        raise DataError(f"{run} was trained with other settings ({diff}); resume it with `--out {run} --resume` "
+                        "alone (it reads its own settings), or train the new settings into another --out")
 
 
 def open_train_split(dataset: str) -> MultiViewDataset:
     return MultiViewDataset(dataset, split="train", views_per_item=1, image="linear", with_envmap=False)
+
+
+def check_trainable_size(ds: MultiViewDataset) -> int:
+    """The dataset's image size, which the model sees: refused unless the encoder can downsample it by 16."""
+    if ds.resolution % 16:
+        lower, upper = 16 * max(1, ds.resolution // 16), 16 * (ds.resolution // 16 + 1)
+        raise DataError(f"{ds.root}: its images are {ds.resolution}x{ds.resolution}, and the model needs a multiple "
+                        f"of 16 (its encoder halves the image four times); render the set with --resolution {lower} "
+                        f"or {upper}")
+    return ds.resolution
+
+
+def warn_if_cores_are_busy(threads: int) -> None:
+    """One line where other processes keep a core busy: torch's threads then wait on each other at every step, and a
+    step at 2 threads on 2 cores was measured 6-20x slower (0.45 s -> 3-9 s)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    busy = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    if threads > 1 and busy >= 1.0 and busy + threads > cores + 0.5:
+        print(f"warning: other processes keep {busy:.1f} of {cores} cores busy; at {threads} threads each step may be "
+              "several times slower: pass --threads 1, or wait for them", file=sys.stderr)
 
 
 def restore(ckpt: Path, model, opt) -> int:
@@ -125,18 +144,21 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         raise ValueError("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
     if config.threads:
         torch.set_num_threads(config.threads)
+    if rank == 0 and config.device == "cpu":
+        warn_if_cores_are_busy(torch.get_num_threads())
     out = Path(config.out)
     ckpt = out / runs.CHECKPOINT
     if ckpt.exists() and not resume:
         raise FileExistsError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+    ds = dataset or open_train_split(config.dataset)  # before the run folder exists: bad data leaves nothing
+    if config.predict_metallic is None:  # the metallic parameter is predicted where the data has metals
+        config = replace(config, predict_metallic=ds.has_metals)
     if ckpt.exists():
         check_resumable(out, config)
     torch.manual_seed(config.seed)
-    ds = dataset or open_train_split(config.dataset)  # before the run folder exists: bad data leaves nothing
-    data = TrainingViews(ds, config.image_size, envmaps=bool(config.light_supervision),
-                         roughness=config.oracle_roughness, normals=config.reads_gt_normals(), device=config.device,
-                         max_objects=config.train_objects)
-    model = make_model(config).to(config.device)
+    data = TrainingViews(ds, check_trainable_size(ds), envmaps=config.supervision in ("light-map", "light-probe", "sun"),
+                         normals=config.reads_gt_normals(), device=config.device, max_objects=config.train_objects)
+    model = make_model(config, data.resolution).to(config.device)
     if config.probe_normals == "pixels":  # fitted once, before the model trains, held, read in evaluation
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)
     opt = make_optimizer(model, config)
@@ -160,8 +182,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     t_start = time.perf_counter()
     for it in bar:
         renderer, second = runs.step_renderers(config, it)
-        batch = data.batch(it, config.batch_objects, config.seed, rank, world, batch_pairing(config))
-        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, it, second)
+        batch = data.batch(it, config.batch_objects, config.seed, rank, world)
+        total, terms, snap = multiview_losses(ddp, renderer, batch, config, laplacian, second)
         check_finite({"total": total, **terms})
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -174,9 +196,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
             if done % config.log_every == 0 or done == config.iterations:
                 log.write(done, total, terms, time.perf_counter() - t_start)
                 bar.set_postfix(loss=f"{total.item():.4f}", img=f"{terms['image'].item():.4f}", iou=f"{terms['iou'].item():.3f}")
-            if done % config.snapshot_every == 0 or done == config.iterations:
-                write_snapshot(out / runs.SNAPSHOTS / f"iter_{done:06d}.png", snap)
             if done % config.checkpoint_every == 0 or done == config.iterations:
+                write_snapshot(out / runs.SNAPSHOTS / f"iter_{done:06d}.png", snap)
                 save_checkpoint(ckpt, model, opt, done, config)
     if rank == 0:
         log.close()
@@ -195,7 +216,7 @@ LOG_HEADER = "iteration,total,image,iou,laplacian,gradient,seconds\n"
 
 
 class TrainingLog:
-    """log.csv (the eq. 8 terms) and TensorBoard (every term, the variants' too). On resume the CSV is cut back
+    """log.csv (the eq. 8 terms) and TensorBoard (every term, the diagnostics' too). On resume the CSV is cut back
     to the checkpoint (rows after it are logged again) and its ``seconds`` continue from the checkpoint's row."""
 
     def __init__(self, path: Path, start: int):
@@ -231,8 +252,8 @@ class TrainingLog:
 
 
 def write_snapshot(path: Path, snap: dict, rows: int = 4) -> None:
-    """Input | re-render (in the input view; in the other view with ``cross_view_only``) | predicted albedo
-    (the whole texture) | predicted light (world frame), for a few items."""
+    """Input | re-render (in the input view) | predicted albedo (the whole texture) | predicted light (world frame),
+    for a few items."""
     n = min(rows, snap["input"].shape[0] // 2)
     pred = snap["pred"]
     s = snap["input"].shape[1]
@@ -266,30 +287,34 @@ def plot_losses(log_path: Path, png_path: Path) -> None:
 
 def parse_config(args: argparse.Namespace) -> tuple[TrainConfig, MultiViewDataset]:
     """The run's TrainConfig from the preset, the variant, the --config file and the flags (in that order), and
-    its training split."""
-    values = runs.read_json(args.config, "config file") if args.config else {}
-    if not isinstance(values, dict):
-        raise ConfigError(f"{args.config}: a config file must be a JSON object of TrainConfig fields")
+    its training split. ``--resume`` without --config starts from the run's own config in --out."""
+    flags = config_overrides(args)
+    run = Path(flags.get("out", TrainConfig.out))
+    if args.config:
+        values = runs.read_json(args.config, "config file")
+        if not isinstance(values, dict):
+            raise ConfigError(f"{args.config}: a config file must be a JSON object of TrainConfig fields")
+    elif args.resume and runs.is_run(run):
+        values = runs.load_config(run).to_dict()  # a flag on top that changes it is refused by check_resumable
+    else:
+        values = {}
     try:
-        config = TrainConfig.from_dict({**values, **config_overrides(args)}, preset=args.preset)
+        config = TrainConfig.from_dict({**values, **flags}, preset=args.preset)
     except ConfigError as e:
         raise ConfigError(f"{args.config}: {e}" if args.config else str(e)) from None
-    ds = open_train_split(config.dataset)
-    if "predict_metallic" not in values and args.predict_metallic is None:
-        # the metallic parameter is predicted where the data has metals (the metallic set), else fixed at 0
-        config.predict_metallic = ds.has_metals
-    return config, ds
+    return config, open_train_split(config.dataset)
 
 
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.train", description=__doc__)
     ap.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="size of the run (default: cpu)")
     ap.add_argument("--config", metavar="JSON", help="file of TrainConfig fields (after the preset and variant)")
-    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with the "
+                    "settings in its config.json (a flag that changes what it trains is refused)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
     ap.add_argument("--list-variants", action="store_true", help="print the named variants and exit")
     ap.add_argument("--variant-runs", metavar="KINDS", help="print 'dataset variant seed' of every run of the "
-                    "variants of these comma-separated kinds (ablation, diagnostic, paper) and exit: make's loops")
+                    "variants of these comma-separated kinds (ablation, diagnostic, paper, published) and exit: make's loops")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     try:
@@ -298,8 +323,6 @@ def main(argv=None) -> int:
             return 0
         config, ds = parse_config(args)
         check_output_folder("--out", Path(config.out))
-        if config.light_prior:  # fitted (or read from its cache) before the run starts, so a missing one stops it here
-            light_prior.build(Path(config.light_prior))
         train(config, resume=args.resume, progress=not args.no_progress, dataset=ds)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)

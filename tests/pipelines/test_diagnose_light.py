@@ -1,4 +1,4 @@
-"""The sun read off the mirror cue (the probe head's sun_lobe "probe", diagnose_light's row), on hand-made cases."""
+"""The sun read off the mirror cue (the probe head's sun, diagnose_light's row), on hand-made cases."""
 import math
 
 import pytest
@@ -53,13 +53,13 @@ def test_a_sun_read_off_the_cue_sits_at_the_mirror_direction_of_the_brightest_pi
 
 
 def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
-    """With sun="probe" a bright reflection below the horizon does not draw the sun, and the sun's power is at
-    least what the cue shows near it even when the head's own intensity says nothing (a second lobe on its axis
-    carries what the cue adds); "learned" follows the head."""
+    """A bright reflection below the horizon does not draw the sun, and on metal the sun's power is at least what
+    the cue shows near it even when the head's own intensity says nothing (a second lobe on its axis carries what
+    the cue adds)."""
     torch.manual_seed(0)
     h, w = 16, 32
     grid = torch.cat([_probe_grid_with({(3, 8): 20.0, (12, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)  # + diffuse cue
-    heads = {s: ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun=s) for s in ("learned", "probe")}
+    heads = {"probe": ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4)}
     dirs = equirect_directions(h, w).reshape(-1, 3)
     for head in heads.values():
         with torch.no_grad():
@@ -68,12 +68,11 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
         light = {s: head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1)) for s, head in heads.items()}
     up = light["probe"]["axis"][0, -1]
     assert up[2] > 0.5 and float(up @ dirs[3 * w + 8]) > 0.95
-    assert light["learned"]["axis"][0, -1, 2] < -0.5  # the learned sun follows the brightest cell, glint or not
     assert light["probe"]["axis"].shape[1] == 9 and heads["probe"].sun_lobes == 2  # the head's sun and the cue's
     power = sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -2:].sum(0)
     cue = cue_sun_power(grid, up[None], dirs, equirect_solid_angles(h, w).expand(-1, w).reshape(-1))[0]
     assert (power >= 0.999 * cue).all() and (cue > 0).all()
-    assert sg_integral(light["learned"]["sharpness"], light["learned"]["amplitude"])[0, -1].max() < 1e-6
+    assert sg_integral(light["probe"]["sharpness"], light["probe"]["amplitude"])[0, -2].max() < 1e-6  # its own: off
     # on paint (not metal) the cue also shows diffuse shading: no floor, the sun stays above the horizon
     with torch.no_grad():
         paint = heads["probe"](grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
@@ -167,7 +166,7 @@ def test_each_views_sun_axis_is_turned_to_the_world_by_its_own_frame():
 
 
 def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it():
-    """sun_cue "facing": on a sphere the pixels that graze the camera (n.v < 0.3) mirror the directions within ~35
+    """The facing cue: on a sphere the pixels that graze the camera (n.v < 0.3) mirror the directions within ~35
     degrees of straight behind it; the facing cue covers none of those, the full cue does; and the head's sun is
     read off the cue it is given (its brightest cell), the sky lobes off the full grid."""
     from pipelines.light_probe import FACING_MIN, facing_mirror_cue, probe_grid
@@ -183,7 +182,7 @@ def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it
     assert float(full[0, 3].flatten()[behind].min()) > 0 and float(facing[0, 3].flatten()[behind].max()) == 0.0
     torch.testing.assert_close(facing[0, 3].flatten()[~behind].gt(0).float().mean(), torch.tensor(1.0), atol=0.25, rtol=0)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
-    head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
+    head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4)
     dirs = equirect_directions(h, w).reshape(-1, 3)
     with torch.no_grad():
         own = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1))
@@ -192,51 +191,22 @@ def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it
     torch.testing.assert_close(told["amplitude"][:, :-2], own["amplitude"][:, :-2])
 
 
-def test_the_cues_sun_axis_ignores_the_learnt_shift_that_the_heads_follows():
-    """sun_axis "cue": the sun's distribution is the cue's (its brightest cell) whatever the head's last layer says;
-    "head" adds that layer's shift (here a large one toward another cell); the sky lobes are the same either way."""
-    h, w = 16, 32
-    dirs = equirect_directions(h, w).reshape(-1, 3)
-    grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
-    suns = {}
-    for axis in ("head", "cue"):
-        head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis=axis)
-        shift = torch.zeros(1, 4, h, w)
-        shift[0, 3, 5, 20] = 60.0  # the last layer's output: a large shift of the sun's logits toward cell (5, 20)
-        conv = head._conv
-        head._conv = lambda layer, x, conv=conv, head=head: conv(layer, x) + (shift if layer is head.out else 0)
-        with torch.no_grad():
-            suns[axis] = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.ones(1))
-    assert float(suns["cue"]["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95
-    assert float(suns["head"]["axis"][0, -1] @ dirs[5 * w + 20]) > 0.95
-    torch.testing.assert_close(suns["cue"]["amplitude"][:, :-2], suns["head"]["amplitude"][:, :-2])
-    with pytest.raises(ValueError, match="sun's axis"):
-        ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis="learned")
-
-
-def test_the_shift_on_paint_only_follows_the_cue_on_metal_and_is_the_heads_on_paint():
-    """sun_axis "cue-on-metal" scales the learnt shift by 1 - metallic: a metal's sun is the cue's, paint's (metallic
-    0, as every run on data without metals predicts) bit for bit the former default "head"'s."""
+def test_the_learnt_shift_places_the_sun_on_paint_and_the_cue_on_metal():
+    """The learnt shift of the sun's logits is scaled by 1 - metallic: a metal's sun is where the cue is brightest
+    (a metal's cue is the light's picture), paint's follows the shift (its cue adds the paint's diffuse shading)."""
     h, w = 16, 32
     dirs = equirect_directions(h, w).reshape(-1, 3)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0}), torch.zeros(1, 4, h, w)], 1)
     shift = torch.zeros(1, 4, h, w)
-    shift[0, 3, 5, 20] = 60.0
-    out = {}
-    for axis, metal in (("head", 0.0), ("cue-on-metal", 0.0), ("cue-on-metal", 1.0), ("cue", 1.0)):
-        torch.manual_seed(0)  # the same weights for each head
-        head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe", sun_axis=axis)
-        conv = head._conv
-        head._conv = lambda layer, x, conv=conv, head=head: conv(layer, x) + (shift if layer is head.out else 0)
-        with torch.no_grad():
-            out[axis, metal] = head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.tensor([metal]))
-    for key in out["head", 0.0]:  # bit for bit: a glossy run's model is the default's
-        assert torch.equal(out["cue-on-metal", 0.0][key], out["head", 0.0][key]), key
-    torch.testing.assert_close(out["cue-on-metal", 1.0]["sun_log_p"], out["cue", 1.0]["sun_log_p"])
-    assert float(out["cue-on-metal", 1.0]["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95
-    with pytest.raises(ValueError, match="metal"):
-        ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="learned", sun_axis="cue-on-metal")(
-            grid, torch.zeros(1, 4), torch.eye(3)[None])
+    shift[0, 3, 5, 20] = 60.0  # the last layer's output: a large shift of the sun's logits toward cell (5, 20)
+    head = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4)
+    conv = head._conv
+    head._conv = lambda layer, x: conv(layer, x) + (shift if layer is head.out else 0)
+    with torch.no_grad():
+        paint, metal = (head(grid, torch.zeros(1, 4), torch.eye(3)[None], torch.tensor([m])) for m in (0.0, 1.0))
+    assert float(paint["axis"][0, -1] @ dirs[5 * w + 20]) > 0.95
+    assert float(metal["axis"][0, -1] @ dirs[3 * w + 8]) > 0.95
+    torch.testing.assert_close(paint["amplitude"][:, :-2], metal["amplitude"][:, :-2])  # the sky is the same
 
 
 def test_an_sg_lobe_on_the_grid_keeps_its_power_and_its_place():
@@ -261,24 +231,21 @@ def test_an_sg_lobe_on_the_grid_keeps_its_power_and_its_place():
 
 
 def test_mcs_probe_sun_is_the_sg_light_on_the_grid():
-    """kind "env" with sun "probe": MC's grid is the SG head's light on a grid four times finer than the probe's,
-    its sky lobes and its sun's lobe (no floor) evaluated at the cells, the sun above the horizon where the cue is
-    brightest, and the sky and the sun's lobe apart; with sun "learned" the grid is the refined cue itself, with no
-    sun of its own."""
+    """kind "env": MC's grid is the SG head's light on a grid four times finer than the probe's, its sky lobes and
+    its sun's lobe (no floor) evaluated at the cells, the sun above the horizon where the cue is brightest, and the
+    sky and the sun's lobe apart."""
     h, w = 16, 32
     solid = equirect_solid_angles(4 * h, 4 * w).view(1, 1, 4 * h, 1)
     dirs, coarse = equirect_directions(4 * h, 4 * w).reshape(-1, 3), equirect_directions(h, w).reshape(-1, 3)
     grid = torch.cat([_probe_grid_with({(3, 8): 200.0, (12, 20): 400.0}), torch.zeros(1, 4, h, w)], 1)  # one below
     torch.manual_seed(0)
-    plain = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="learned")
+    head = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4)
     torch.manual_seed(0)
-    head = ProbeLightHead("env", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
-    torch.manual_seed(0)
-    sg = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4, sun="probe")
+    sg = ProbeLightHead("sg", 8, h, w, 3000.0, 12.0, code=4)
     args = (grid, torch.zeros(1, 4), torch.eye(3)[None], torch.zeros(1))
     with torch.no_grad():
         out, lobes = head(*args), sg(*args)
-    assert "sun_log_p" not in plain(*args) and out["image"].shape == (1, 4 * h, 4 * w, 3)
+    assert out["image"].shape == (1, 4 * h, 4 * w, 3)
     torch.testing.assert_close(out["sun_log_p"], lobes["sun_log_p"])
     sky_lobes = SGLight(lobes["axis"][:, :-2], lobes["sharpness"][:, :-2], lobes["amplitude"][:, :-2])
     torch.testing.assert_close(out["sky"].reshape(1, -1, 3), sky_lobes.eval(coarse[None]))
