@@ -173,7 +173,7 @@ def check_image_size(run: Path, image_size: int, ds: MultiViewDataset) -> None:
     if ds.resolution != image_size:
         raise DataError(f"{run} was trained on {image_size}x{image_size} images but {ds.root} holds "
                         f"{ds.resolution}x{ds.resolution}; evaluate it on a dataset rendered at {image_size} "
-                        f"(python -m datagen --resolution {image_size}) or train a run with --image-size {ds.resolution}")
+                        f"(python -m datagen --resolution {image_size}) or a run trained on {ds.root}")
 
 
 def dataset_kind(ds: MultiViewDataset) -> str | None:
