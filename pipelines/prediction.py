@@ -7,8 +7,6 @@ a light's mean radiance grey. ``LIGHT_KINDS``: which light each shading method p
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
-
 import torch
 
 from dibrpp.brdf import Material
@@ -17,9 +15,6 @@ from dibrpp.mesh import Meshes
 from dibrpp.sg import sg_integral
 
 from .light_probe import world_to_probe
-
-if TYPE_CHECKING:
-    from .model import ModelConfig
 
 LIGHT_KINDS = {"mc": "env", "sg": "sg", "sh": "sh", "sh-sg": "sg"}
 
@@ -42,9 +37,10 @@ def white_balance(light: dict, kind: str) -> dict:
 
 
 class Prediction:
-    """What the encoder predicts for a batch of B images; converts to renderer objects."""
+    """What the encoder predicts for a batch of B images (``config``: the encoder's ModelConfig); converts to
+    renderer objects."""
 
-    def __init__(self, verts, texture, roughness, specular, metallic, light_params, config: ModelConfig, template: Meshes,
+    def __init__(self, verts, texture, roughness, specular, metallic, light_params, config, template: Meshes,
                  facing: torch.Tensor | None = None, pixel_normals: torch.Tensor | None = None):
         self.verts, self.texture = verts, texture
         # (B, Ht, Wt): how squarely each texel faced the input camera (0: away); None for the global texture
