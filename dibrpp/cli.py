@@ -36,8 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Monte-Carlo, Spherical Gaussians or spherical harmonics")
     r.add_argument("--spp", type=int, default=256, help="samples per pixel (mc)")
     r.add_argument("--sg-lobes", type=int, default=32, help="number of SG lobes fitted to the env map (sg)")
-    r.add_argument("--distance", type=float, default=3.0, help="orbit camera distance from the origin; beyond the mesh's "
-                   "radius about it (a dataset's object, in [-18, 18]: 60)")
+    r.add_argument("--distance", type=float, default=3.0,
+                   help="orbit camera distance from the origin; beyond the mesh's radius about it (a dataset's "
+                        "object, in [-18, 18]: 60)")
     r.add_argument("--elevation", type=float, default=0.0, help="degrees")
     r.add_argument("--azimuth", type=float, default=0.0, help="degrees")
     r.add_argument("--fov", type=float, default=40.0, help="full field of view in degrees (Blender's camera angle)")

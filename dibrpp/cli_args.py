@@ -59,6 +59,13 @@ def non_negative_int(text: str) -> int:
     return _checked(text, int, lambda v: v >= 0, "a non-negative integer")
 
 
+def int_in(lo: int, hi: int):
+    """An argument type: an integer in lo..hi (the error names both bounds)."""
+    def parse(text: str) -> int:
+        return _checked(text, int, lambda v: lo <= v <= hi, f"an integer in {lo}..{hi}")
+    return parse
+
+
 def finite_float(text: str) -> float:
     return _number(text, float)
 

@@ -1,11 +1,12 @@
 """Remake the example inputs of ``python -m dibrpp render`` (README, docs/renderer.md):
 
-    python -m examples.make
+    python -m examples.make            # or --out DIR
 
 ``examples/car.obj``: one procedural car of the datasets' generator (``datagen.shapes``, seed 3), meshed on a
 coarse grid and scaled into the unit sphere (the datasets' objects span [-18, 18]), so that a camera at the
-default distance of 3 sees all of it from any direction. ``examples/sky.exr``: a 64 x 128 analytic sky, blue above a grey ground, with a
-warm sun; linear RGB, Blender's orientation (+Z up, +X at the centre). Both are deterministic.
+default distance of 3 sees all of it from any direction. ``examples/sky.exr``: a 64 x 128 analytic sky, blue
+above a grey ground, with a warm sun; linear RGB, Blender's orientation (+Z up, +X at the centre). Both are
+deterministic.
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ import torch
 
 from datagen.shapes import car_shape, mesh_shape
 from dibrpp import conventions
-from dibrpp.io import atomic_path, write_exr
+from dibrpp.cli_args import Parser, check_output_folder
+from dibrpp.io import DataError, atomic_path, write_exr
 
 HERE = Path(__file__).resolve().parent
 GRID = 36  # marching-cubes cells along the car's length: ~150 KB of OBJ, still round wheels
@@ -66,8 +68,17 @@ def make(folder: Path = HERE) -> tuple[Path, Path]:
     return mesh, env
 
 
-def main() -> int:
-    for path in make():
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m examples.make", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=str(HERE), metavar="DIR", help="folder for car.obj and sky.exr")
+    args = ap.parse_args(argv)
+    try:
+        check_output_folder("--out", Path(args.out))
+        written = make(Path(args.out))
+    except (DataError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    for path in written:
         print(f"wrote {path}")
     return 0
 

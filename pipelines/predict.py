@@ -10,7 +10,8 @@ The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits; or a li
 channel (the object's mask), as the datasets have; an image without one is accepted only with
 ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
 foreground extraction for renders on a flat background). Any size from 8 x 8 pixels is padded to a square
-(transparent borders) and resized to the model's.
+(transparent borders) and resized to the model's. Its radiance must be finite, non-negative and at most
+exp(12) ~ 1.6e5, the brightest light the model predicts (a scaled EXR is refused, not read as a brighter sun).
 Give a linear EXR where you have one: the model reads the input's full range, and a sun's reflection that an
 8-bit picture clips at 1 is where it finds the sun (docs/experiments.md, entry 13).
 The input camera is taken to be the training set-up (distance, elevation and field of view of the
@@ -19,6 +20,7 @@ training dataset, stored with the run in ``camera.json``) at ``--azimuth`` degre
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -27,16 +29,20 @@ import numpy as np
 import torch
 
 from dibrpp import Cameras
-from dibrpp.cli_args import (Parser, check_output_folder, finite_float, non_negative_float, non_negative_int,
-                             positive_int, unit_rgb)
+from dibrpp.cli_args import (Parser, check_output_folder, finite_float, int_in, non_negative_float, positive_int,
+                             unit_rgb)
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .model_input import encoder_input
-from .refine import refine_light
+from .model_input import MAX_LOG_RADIANCE, encoder_input
+from .refine import MAX_STEPS, refine_light
 from .runs import load_camera, load_run, make_renderer, run_folder
 
 MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
+# The brightest light the model predicts (and the most its input decodes to): no light it can place explains
+# brighter pixels, so such an image is scaled (or corrupt), not lit by a brighter sun.
+MAX_RADIANCE = math.exp(MAX_LOG_RADIANCE)
+LONG_REFINEMENT_S = 30.0  # a refinement expected to take longer is announced with its estimate
 
 
 def say(message: str) -> None:
@@ -47,16 +53,35 @@ def say(message: str) -> None:
 def read_input(path, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
     """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it (see the module
     doc for RGB inputs)."""
+    if Path(path).is_dir():
+        raise DataError(f"--image {path}: is a folder; --image takes one image file (PNG, JPEG, TIFF or EXR)")
     img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
     height, width = img.shape[:2]
     if min(height, width) < MIN_SIDE:
         raise DataError(f"{path}: {width} x {height} pixels is too small; give an image of at least "
                         f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object")
+    check_radiance(path, img[..., :3])
     if img.shape[-1] == 3:
         img = torch.cat([img, foreground_mask(path, img, background, tolerance)], -1)
     if img[..., 3].max() <= 0:
         raise DataError(f"{path}: the alpha channel is empty (no object)")
     return img
+
+
+def check_radiance(path, rgb: torch.Tensor) -> None:
+    """Refuse colour that is no radiance the model could have seen: NaN / Inf (a float TIFF can hold them),
+    negative, or above :data:`MAX_RADIANCE`."""
+    finite = torch.isfinite(rgb)
+    if not finite.all():
+        raise DataError(f"{path}: {int((~finite).sum())} non-finite values (NaN/Inf); the file is corrupt")
+    if (rgb < 0).any():
+        raise DataError(f"{path}: {int((rgb < 0).sum())} negative values (min {float(rgb.min()):.3g}); radiance "
+                        "cannot be negative, clamp the image at 0")
+    peak = float(rgb.max())
+    if peak > MAX_RADIANCE:
+        raise DataError(f"{path}: radiance up to {peak:.3g}, above {MAX_RADIANCE:.3g} (exp({MAX_LOG_RADIANCE:g}), the "
+                        "brightest light the model predicts); the image looks scaled: give it in scene-linear units "
+                        "(a sun's reflection in the datasets is about 1e4)")
 
 
 def resize_input(img: torch.Tensor, size: int) -> torch.Tensor:
@@ -98,19 +123,22 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model
+    size = model.config.image_size  # the side of the images the run trained on
     setup = load_camera(run)
-    orbit = lambda az, size: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], size)  # noqa: E731
-    rgba = resize_input(image_rgba, config.image_size)
+    orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
+    rgba = resize_input(image_rgba, size)
     if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
         say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
             "the full range and places the light best from a linear EXR of the same view")
     say(f"predicting shape, texture, material and light from {image}")
-    cam = orbit(azimuth, config.image_size)
+    cam = orbit(azimuth, size)
     pred = model(encoder_input(rgba[None]), cam)
     gain, t0 = torch.ones(1), time.perf_counter()
     if refine_steps:
         say(f"refining the light: {refine_steps} steps against the input view")
-        pred, gain = refine_light(pred, cam, rgba[None], make_renderer(config, seed=0, training=True), refine_steps)
+        with RefineProgress(refine_steps) as progress:
+            pred, gain = refine_light(pred, cam, rgba[None], make_renderer(config, seed=0, training=True),
+                                      refine_steps, on_step=progress)
     light = pred.light(cam.world_to_camera)
     out.mkdir(parents=True, exist_ok=True)
     mesh = pred.meshes()
@@ -124,10 +152,10 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                     albedo_gain=float(gain[0]), refine_seconds=round(time.perf_counter() - t0, 3) if refine_steps else 0.0)
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
-    say(f"rendering {views} novel views at {2 * config.image_size} px ({config.shading}"
+    say(f"rendering {views} novel views at {2 * size} px ({config.shading}"
         + (f", {spp} spp" if config.shading == "mc" else "") + ")")
     azimuths = azimuth + torch.arange(views) * (360.0 / views)
-    cams = orbit(azimuths, 2 * config.image_size)
+    cams = orbit(azimuths, 2 * size)
     repeated = pred.select([0] * views)
     renders = make_renderer(config, seed=0, spp=spp)(repeated.meshes(), cams, repeated.material(),
                                             repeated.light(cam.world_to_camera.expand(views, 4, 4))).image
@@ -136,6 +164,40 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     write_png(out / "novel_views.png", strip)
     say(f"wrote {out}/: mesh.obj, mesh.mtl, texture.png, envmap.exr, material.json, novel_views.png")
     return material
+
+
+class RefineProgress:
+    """``on_step`` of :func:`refine_light`: a progress bar on stderr and, when the steps will take longer than
+    LONG_REFINEMENT_S, their estimate. A step's time is the second's: the first may compile the renderer."""
+
+    def __init__(self, steps: int, clock=time.perf_counter):
+        from tqdm import tqdm
+
+        self.steps, self.clock = steps, clock
+        self.last = clock()
+        self.bar = tqdm(total=steps, desc="refining", unit="step", file=sys.stderr, leave=False)
+
+    def __call__(self, done: int) -> None:
+        now = self.clock()
+        step_s, self.last = now - self.last, now
+        self.bar.update(1)
+        left_s = step_s * (self.steps - done)
+        if done == 2 and left_s > LONG_REFINEMENT_S:
+            self.bar.write(f"refining the light: about {format_duration(left_s)} for the {self.steps - done} steps "
+                           f"left ({step_s:.2f} s a step)", file=sys.stderr)
+
+    def __enter__(self) -> "RefineProgress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.bar.close()
+
+
+def format_duration(seconds: float) -> str:
+    """"40 s", "12 min", "1.7 h"."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
 
 
 def build_parser() -> Parser:
@@ -152,8 +214,9 @@ def build_parser() -> Parser:
                     help="with --background: largest sRGB difference from it that is still background")
     ap.add_argument("--views", type=positive_int, default=4, metavar="N", help="novel views rendered around the object")
     ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel of the novel views")
-    ap.add_argument("--refine-steps", type=non_negative_int, default=0, metavar="N",
-                    help="refine the predicted light with N Adam steps against the input view (pipelines.refine)")
+    ap.add_argument("--refine-steps", type=int_in(0, MAX_STEPS), default=0, metavar="N",
+                    help=f"refine the predicted light with N Adam steps against the input view (pipelines.refine; "
+                         f"tens suffice, at most {MAX_STEPS}; the time they take is shown as they run)")
     return ap
 
 

@@ -13,7 +13,7 @@ from pipelines import predict, train
 @pytest.fixture(scope="module")
 def run(tiny_glossy, tmp_path_factory):
     out = tmp_path_factory.mktemp("runs") / "sg"
-    assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--image-size", "32", "--iterations", "2",
+    assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--iterations", "2",
                        "--out", str(out), "--no-progress"]) == 0
     return out
 
@@ -52,3 +52,89 @@ def test_rgb_input_needs_a_background_and_errors_are_clear(run, tmp_path, capsys
     assert predict.main(["--checkpoint", str(run), "--image", str(tmp_path / "broken.png"), "--out", str(tmp_path / "c")]) == 2
     assert predict.main(["--checkpoint", str(tmp_path), "--image", str(tmp_path / "photo.png"), "--out", str(tmp_path / "d")]) == 2
     assert "not a run folder" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- input refused before the model loads
+
+@pytest.fixture
+def fake_run(tmp_path, monkeypatch):
+    """A folder that passes for a run; loading it fails the test (bad input must be refused before)."""
+    from pipelines.config import TrainConfig
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(TrainConfig(dataset=str(tmp_path)).to_dict()))
+    (run / "checkpoint.pt").write_bytes(b"never read")
+    monkeypatch.setattr(predict, "load_run", lambda *a: pytest.fail("the model loaded for input it must refuse"))
+    return run
+
+
+def one_error(code, err: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error:"), err
+    return lines[0]
+
+
+def exr_view(tmp_path, scale: float = 1.0, name: str = "view.exr"):
+    """An RGBA EXR of a square object whose radiance is ``scale`` times 0.5, with a sun's reflection of 50."""
+    rgba = np.zeros((24, 24, 4), np.float32)
+    rgba[6:18, 6:18] = 0.5, 0.3, 0.2, 1.0
+    rgba[11:13, 11:13, :3] = 50.0
+    with np.errstate(invalid="ignore"):  # inf x 0 is NaN: non-finite either way
+        rgba[..., :3] *= scale
+    write_exr(tmp_path / name, rgba)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("scale, message", [
+    (1e30, "radiance up to 5e+31, above 1.63e+05 (exp(12), the brightest light the model predicts); the image looks "
+           "scaled: give it in scene-linear units"),
+    (-1.0, "negative values (min -50); radiance cannot be negative, clamp the image at 0"),
+    (float("inf"), "non-finite values (NaN/Inf)"),
+])
+def test_radiance_no_light_explains_is_refused(fake_run, tmp_path, capsys, scale, message):
+    image = exr_view(tmp_path, scale)
+    code = predict.main(["--checkpoint", str(fake_run), "--image", str(image), "--out", str(tmp_path / "p")])
+    assert message in one_error(code, capsys.readouterr().err)
+    assert not (tmp_path / "p").exists()
+
+
+def test_a_float_tiff_with_nan_is_refused(fake_run, tmp_path, capsys):
+    grey = np.zeros((16, 16), np.float32)
+    grey[4:12, 4:12] = 0.5
+    grey[8, 8] = np.nan
+    Image.fromarray(grey, "F").save(tmp_path / "grey.tif")
+    code = predict.main(["--checkpoint", str(fake_run), "--image", str(tmp_path / "grey.tif"), "--out",
+                         str(tmp_path / "p"), "--background", "0,0,0"])
+    assert "grey.tif: 3 non-finite values (NaN/Inf)" in one_error(code, capsys.readouterr().err)
+
+
+def test_a_folder_for_image_says_so(fake_run, tmp_path, capsys):
+    code = predict.main(["--checkpoint", str(fake_run), "--image", str(tmp_path), "--out", str(tmp_path / "p")])
+    line = one_error(code, capsys.readouterr().err)
+    assert f"--image {tmp_path}: is a folder; --image takes one image file" in line
+
+
+def test_refine_steps_are_bounded(fake_run, tmp_path, capsys):
+    argv = ["--checkpoint", str(fake_run), "--image", str(exr_view(tmp_path)), "--out", str(tmp_path / "p"),
+            "--refine-steps", "1000000"]
+    with pytest.raises(SystemExit) as exit_:
+        predict.main(argv)
+    line = one_error(exit_.value.code, capsys.readouterr().err)
+    assert "--refine-steps: expected an integer in 0..10000, got 1000000" in line
+    assert "at most 10000" in " ".join(predict.build_parser().format_help().split())
+
+
+def test_a_long_refinement_says_how_long_after_its_second_step(capsys):
+    """The first step compiles the renderer: the estimate comes from the second."""
+    times = iter([0.0, 60.0, 60.5, 61.0, 100.0, 100.0, 100.1])
+    clock = lambda: next(times)  # noqa: E731
+    with predict.RefineProgress(1000, clock) as progress:
+        progress(1)
+        progress(2)
+        progress(3)
+    assert "refining the light: about 8 min for the 998 steps left (0.50 s a step)" in capsys.readouterr().err
+    with predict.RefineProgress(20, clock) as progress:  # 2 s left: no estimate
+        progress(1)
+        progress(2)
+    assert "refining the light" not in capsys.readouterr().err

@@ -40,3 +40,16 @@ def test_refinement_fits_the_light_to_the_input_view_and_keeps_shape_and_materia
     ratio = refined.texture / pred.texture.clamp_min(1e-6)
     assert gain.shape == (2,) and torch.allclose(ratio[pred.texture * gain.max() < 0.99],
                                                  gain.view(-1, 1, 1, 1).expand_as(ratio)[pred.texture * gain.max() < 0.99], rtol=1e-4)
+
+
+def test_refinement_reports_each_step():
+    torch.manual_seed(0)
+    model = Encoder(ModelConfig(image_size=16, shading="sg", lobes=2, light_head="probe"))
+    cams = Cameras.orbit(40.0, 20.0, torch.tensor([0.0]), 40.0, 16)
+    with torch.no_grad():
+        target = torch.zeros(1, 16, 16, 4)
+        target[..., 4:12, 4:12, :] = 0.5
+        pred = model(encoder_input(target), cams)
+    done = []
+    refine_light(pred, cams, target, Renderer("sg", compile=False), steps=3, on_step=done.append)
+    assert done == [1, 2, 3]
