@@ -397,8 +397,8 @@ def evaluate_runs(runs: list[Path], paths: dict[Path, Path], args) -> list[str]:
             continue
         if r["iteration"] < r["trained_iterations"]:
             print(f"warning: {run} stopped at iteration {r['iteration']} of {r['trained_iterations']}", file=sys.stderr)
-        if (r["dataset"], r["split"]) not in warned:
-            warned.add((r["dataset"], r["split"]))
+        if (r["dataset"], r.get("split")) not in warned:
+            warned.add((r["dataset"], r.get("split")))
             for line in split_warnings(r):
                 print(line, file=sys.stderr)
         print(f"{run}: " + ", ".join(f"{k} {format_number(r.get(k), '.4f')}" for k in (*METRICS, *LIGHT_METRICS)))
