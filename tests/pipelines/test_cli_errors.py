@@ -39,7 +39,7 @@ def call(main, argv: list[str]) -> int:
 
 
 def smoke_args(dataset, out, *extra) -> list[str]:
-    return ["--preset", "smoke", "--dataset", str(dataset), "--image-size", "32", "--iterations", "2",
+    return ["--preset", "smoke", "--dataset", str(dataset), "--iterations", "2",
             "--out", str(out), "--no-progress", *extra]
 
 
