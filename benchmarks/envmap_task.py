@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from dibrpp import Cameras
-from pipelines.metrics import ncc_loss
+from pipelines.evaluation.metrics import ncc_loss
 
 CAMERA = {"distance": 3.0, "elevation_deg": 20.0, "azimuth_deg": 30.0, "fov_deg": 45.0}
 SPHERE_SUBDIVISIONS = 4  # 2562 vertices, 5120 faces

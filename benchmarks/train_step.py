@@ -20,10 +20,10 @@ from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, posit
 from dibrpp.formatting import markdown_table, write_csv
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.config import PRESETS, ConfigError, TrainConfig
-from pipelines.dataset import TrainingViews
-from pipelines.objective import multiview_losses
-from pipelines.runs import make_model, make_optimizer, step_renderers
+from pipelines.training.config import PRESETS, ConfigError, TrainConfig
+from pipelines.training.dataset import TrainingViews
+from pipelines.training.objective import multiview_losses
+from pipelines.training.runs import make_model, make_optimizer, step_renderers
 
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
@@ -77,7 +77,7 @@ def build_parser() -> Parser:
     ap.add_argument("--iterations", type=positive_int, default=10, metavar="N", help="timed iterations")
     ap.add_argument("--warmup", type=non_negative_int, default=2, metavar="N",
                     help="untimed iterations first (torch.compile compiles here)")
-    ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.variants to time "
+    ap.add_argument("--variant", default="", metavar="NAME", help="a named variant of pipelines.training.variants to time "
                     "(default: the default model)")
     ap.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="the training preset whose batch and "
                     "samples per pixel are timed (paper: 16 objects, 64 spp; the image size is the dataset's) "

@@ -42,11 +42,11 @@ from dibrpp.io import DataError
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.sg import sg_integral
 
-from . import metrics
-from .light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
-from .prediction import LIGHT_KINDS, white_balance
-from .model_input import clip_input, encoder_input, input_radiance
-from .runs import load_run, run_folder
+from .evaluation import metrics
+from .model.light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
+from .model.prediction import LIGHT_KINDS, white_balance
+from .model.model_input import clip_input, encoder_input, input_radiance
+from .training.runs import load_run, run_folder
 
 SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
 

@@ -42,10 +42,11 @@ from dibrpp.io import DataError
 from dibrpp.lights import EnvMap, fit_sg_to_envmap
 from dibrpp.mesh import laplacian_smoothness, uniform_laplacian
 
-from . import metrics
-from .config import TrainConfig
-from .losses import foreground_l1, gradient_loss, hdr_srgb, normal_loss, soft_iou_loss
-from .model import Encoder, ModelConfig
+from .evaluation import metrics
+from .training.config import TrainConfig
+from .model.pixel_normals import normal_loss
+from .training.losses import foreground_l1, gradient_loss, hdr_srgb, soft_iou_loss
+from .model.encoder import Encoder, ModelConfig
 
 SIGNALS = ("normals", "silhouettes", "image", "image-from-normals", "image-annealed")
 ANNEAL_ROUGHNESS = 0.7  # ``image-annealed``: the roughness the fit starts from, lowered to the object's own

@@ -3,7 +3,7 @@
     python -m pipelines.evaluate --runs runs --out results/eval [--refine-steps 30 --out results/eval-refine30]
 
 Finds every run folder under ``--runs`` (``config.json`` + ``checkpoint.pt``), predicts from every test
-view, and measures (Sec. E.3, E.6; see :mod:`pipelines.metrics`): image L1 of the re-rendering in the
+view, and measures (Sec. E.3, E.6; see :mod:`pipelines.evaluation.metrics`): image L1 of the re-rendering in the
 input view over the whole image (the paper's) and over the GT foreground, 2D IoU loss, light 1 - NCC
 (predicted light as a world-frame equirect map vs the GT env map, both as LDR maps and as HDR maps),
 texture 1 - NCC (unlit albedo renders vs Cycles' albedo AOV), Chamfer distance to the GT mesh, the
@@ -12,7 +12,7 @@ constant env map scores. Writes ``<dataset>/<run>.json`` (runs sharing a folder 
 folders in the name), a figure ``<dataset>/<run>.png`` (input, re-rendering, albedo and light ours vs GT,
 novel views) and ``<dataset>/<run>_failures.png`` (the worst test view by each metric) per run; a result is
 reused only while the run's checkpoint and config and the evaluation's settings are the same. Then a
-Markdown/CSV table of every result ``--out`` holds, the paper-style tables (:mod:`pipelines.tables`) and the
+Markdown/CSV table of every result ``--out`` holds, the paper-style tables (:mod:`pipelines.evaluation.tables`) and the
 HTML report. One evaluate writes an ``--out`` at a time. Details: docs/evaluation.md.
 """
 from __future__ import annotations
@@ -26,292 +26,25 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
+
 import torch
-from tqdm import tqdm
 
-from datagen.reader import MultiViewDataset, collate
-from dibrpp.cli_args import Parser, check_output_folder, non_negative_int, positive_int
-from dibrpp.display import display_image, tonemap_envmap
-from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure, write_csv
+from datagen.reader import MultiViewDataset
+from dibrpp.cli_args import Parser, check_output_folder, int_in, positive_int
+from dibrpp.formatting import format_number
 from dibrpp.io import DataError, atomic_path
-from dibrpp.lights import EnvMap
 
-from . import metrics
-from .model_input import encoder_input
-from .refine import refine_light
-from .report import evaluated_runs, write_report
-from .runs import checkpoint_digest, find_runs, load_config, load_run, make_renderer
-from .tables import write_tables
+from .evaluation.report import evaluated_runs, write_report
+from .evaluation.summary import LIGHT_METRICS, METRICS, write_direction_figures, write_figure, write_table
+from .evaluation.tables import write_tables
+from .scoring import evaluate_run, split_warnings
+from .training.refine import MAX_STEPS
+from .training.runs import checkpoint_digest, find_runs, load_config
 
-# the paper's metrics: image L1 over the whole image (the paper's) and the GT foreground (ours), eq. 9 on LDR maps
-# (the paper's, as we read it) and on HDR maps
-METRICS = ("image_whole", "image_foreground", "iou", "light_ldr", "light_hdr", "texture", "chamfer")
 # what a result JSON holds; a cached result of an older format is evaluated again (3: the whole-image L1, eq. 9
 # on LDR maps, the dataset's kind and its split's size)
 RESULT_FORMAT = 3
-LIGHT_METRICS = ("probe_diffuse", "probe_metal", "probe_mirror", "colour_deg", "direction_deg")
-# a metric and its reference: what a constant env map scores under the same definition
-CONSTANT_REFERENCES = tuple(f"{k}_constant" for k in ("light_ldr", "light_hdr", *LIGHT_METRICS))
-FAILURE_METRICS = ("image_foreground", "iou", "light_hdr", "texture", "chamfer", "probe_metal")
-# a split with fewer samples (objects under a map) gives means that say little: the direction's intervals
-# resample whole samples
-MIN_SAMPLES = 10
 LOCK_FILE = ".evaluate.lock"  # in --out: one evaluate writes a results folder at a time
-
-
-FIGURE_ROWS = 4
-NOVEL_AZIMUTHS = (90.0, 180.0)  # novel views: the input camera moved this far along its orbit
-FIGURE_COLUMNS = ("input", "re-rendering", "albedo (ours)", "albedo (GT)", "light (ours)", "light (GT)",
-                  "metal probe (ours)", "metal probe (GT)", *(f"novel view +{a:.0f}°" for a in NOVEL_AZIMUTHS))
-METRIC_NAMES = {"image_foreground": "image L1 (foreground)", "iou": "2D IoU loss", "light_hdr": "light 1-NCC (HDR)",
-                "texture": "tex 1-NCC", "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
-
-
-@torch.no_grad()
-def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, refine=None) -> tuple[dict, list]:
-    """Per-view metrics (name -> (B,) tensor) of a batch of test views and, with ``figure``, one figure
-    row per view (input, re-rendering, albedo and light ours vs GT, the rough-metal probe under both lights,
-    novel views with the light fixed in the world)."""
-    b = collate(items)
-    rgba = b["image"][:, 0]
-    cams = b["cameras"]
-    pred = model(encoder_input(rgba), cams)
-    if refine is not None:  # (steps, renderer): test-time refinement of the light against the input view
-        pred, _ = refine_light(pred, cams, rgba, refine[1], steps=refine[0])
-    light = pred.light(cams.world_to_camera)
-    out = renderer(pred.meshes(), cams, pred.material(), light)
-    gt_mask, env = rgba[..., 3], b["envmap"]
-    pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
-    albedo = renderer.render_albedo(pred.meshes(), cams, pred.material()).rgb
-    verts = pred.meshes().verts
-    gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
-    chamfer = [metrics.chamfer_distance(verts[k].numpy(), model.faces.numpy(), gt.verts[0].numpy(), gt.faces.numpy(),
-                                        samples=4000) for k, gt in enumerate(gt_meshes)]
-    normals = renderer.render_normals(pred.meshes(), cams)
-    gt_normals = [renderer.render_normals(gt, cams[[k]]) for k, gt in enumerate(gt_meshes)]
-    normal_deg, normal_within = metrics.normal_error_deg(
-        normals.rgb, normals.alpha, torch.cat([g.rgb for g in gt_normals]), torch.cat([g.alpha for g in gt_normals]))
-    shown_rgb, gt_rgb = display_image(out.rgb), display_image(rgba[..., :3])  # both composited on black
-    per_view = {"normal_deg": normal_deg, "normal_within_10deg": normal_within,
-                "image_whole": metrics.image_l1_whole(shown_rgb, gt_rgb),
-                "image_foreground": metrics.image_l1_foreground(shown_rgb, gt_rgb, gt_mask),
-                "iou": metrics.iou_loss(out.alpha, gt_mask),
-                **metrics.envmap_losses(pred_env, env),
-                "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
-                "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
-    gt_light = EnvMap(env)
-    probes = metrics.ProbeScene(cams.world_to_camera)
-    per_view.update(metrics.light_metrics(light, gt_light, probes))
-    per_view.update(metrics.constant_light_references(env, probes))
-    rows = []
-    if figure:
-        novel = [display_image(renderer(pred.meshes(), cams.orbited(a), pred.material(), light).rgb) for a in NOVEL_AZIMUTHS]
-        # probes scaled like the metric (best scale against the GT), so what is compared is what is shown
-        shown = metrics.ProbeScene(cams.world_to_camera, resolution=64)
-        probe, probe_gt = (shown.render(lt)["metal"] for lt in (light, gt_light))
-        scale = metrics.si_scale(probe, probe_gt).view(-1, 1, 1, 1)
-        exposure = 0.5 / metrics.mean_colour(probe_gt).mean(-1).clamp_min(1e-8).view(-1, 1, 1, 1)
-        rows = [[display_image(rgba[k, ..., :3]) * rgba[k, ..., 3:], display_image(out.rgb[k]), display_image(albedo[k]),
-                 display_image(b["albedo"][k, 0]), tonemap_envmap(pred_env[k]), tonemap_envmap(env[k]),
-                 display_image(exposure[k] * scale[k] * probe[k, ..., :3]), display_image(exposure[k] * probe_gt[k, ..., :3]),
-                 *(v[k] for v in novel)]
-                for k in range(len(items))]
-    return per_view, rows
-
-
-def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
-                 view_stride: int = 1, split: str = "test", refine_steps: int = 0) -> tuple[dict, dict]:
-    """Mean metrics over the ``split`` views of the run's dataset (or ``dataset``; every ``view_stride``-th
-    view of each sample; ``split="train"`` measures the train/test gap; ``refine_steps``: the light refined at
-    test time against each input view, :mod:`pipelines.refine`), and figure rows:
-    {"examples": a few different samples, "failures": the worst view by each metric, with its label}."""
-    loaded = load_run(run)
-    config, model, iteration = loaded.config, loaded.model, loaded.iteration
-    ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
-    check_image_size(run, model.config.image_size, ds)
-    renderer = make_renderer(config, seed=0, spp=eval_spp)
-    views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
-    refine = (refine_steps, make_renderer(config, seed=0, training=True)) if refine_steps else None
-    per_view, t0 = {}, time.perf_counter()
-    for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
-        values, _ = predict_views(model, renderer, ds, [ds[i] for i in views[start:start + batch]], refine=refine)
-        for k, v in values.items():
-            per_view.setdefault(k, []).append(v)
-    per_view = {k: torch.cat(v) for k, v in per_view.items()}
-    # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
-    # flipped predictions of 180 degrees should not hide that most are right)
-    result = {k: float(v.nanmedian() if k.startswith(("direction_deg", "normal_deg")) else
-                       v.nanmean() if k.startswith("normal") else v.mean()) for k, v in per_view.items()}
-    result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
-    for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure
-        v = per_view[k]
-        result[k + "_views"] = [round(float(x), 2) for x in v[torch.isfinite(v)]]
-    # the sunny views' median and shares within 25 / 45 degrees, with 95 % intervals over the samples they come from
-    sunny = torch.isfinite(per_view["direction_deg"]).numpy()
-    sample_of_view = np.array([i // ds.num_views for i in views])[sunny]
-    summary = metrics.direction_summary(per_view["direction_deg"].numpy()[sunny], sample_of_view)
-    result.update({f"direction_{k}": v for k, v in summary.items() if k != "median"},
-                  direction_deg_ci=summary["median_ci"], samples_with_dominant_light=len(set(sample_of_view.tolist())))
-    result.update(split_size(ds, split))
-    result.update(run=str(run), dataset=Path(ds.root).name, dataset_kind=dataset_kind(ds),
-                  trained_on=Path(config.dataset).name,
-                  shading=config.shading, lobes=config.lobes,
-                  seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
-                  view_stride=view_stride, variant=config.label(), split=split, refine_steps=refine_steps,
-                  seconds_per_view=(time.perf_counter() - t0) / len(views))
-    shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
-    worst = {k: views[int(per_view[k].argmax())] for k in FAILURE_METRICS}
-    _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True, refine=refine)
-    _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True, refine=refine)
-    labels = [f"worst {METRIC_NAMES[k]}\n({float(per_view[k].max()):.3g})" for k in worst]
-    return result, {"examples": (example_rows, None), "failures": (failure_rows, labels)}
-
-
-def check_image_size(run: Path, image_size: int, ds: MultiViewDataset) -> None:
-    """A DataError unless the dataset's images are the size the run's model reads (as training refuses them)."""
-    if ds.resolution != image_size:
-        raise DataError(f"{run} was trained on {image_size}x{image_size} images but {ds.root} holds "
-                        f"{ds.resolution}x{ds.resolution}; evaluate it on a dataset rendered at {image_size} "
-                        f"(python -m datagen --resolution {image_size}) or a run trained on {ds.root}")
-
-
-def dataset_kind(ds: MultiViewDataset) -> str | None:
-    """The kind of set the manifest says it is (metallic, glossy, diffuse: what decides its paper table), whatever
-    its folder is called; None where the manifest does not say."""
-    kind = ds.manifest.get("dataset")
-    return kind if isinstance(kind, str) else None
-
-
-def split_size(ds: MultiViewDataset, split: str) -> dict:
-    """How much the split holds: its samples (objects under a map), its env maps and, for the test split, how many
-    of them also light the train split's objects (a set with few maps cannot hold any out; None if the manifest
-    does not say)."""
-    maps = {env for _, env in ds.samples}
-    shared = None
-    if split == "test":
-        try:
-            trained = {int(e) for o in ds.manifest["objects"] if o["split"] == "train" for e in o["envmaps"]}
-            shared = len(maps & trained)
-        except (KeyError, TypeError, ValueError):
-            pass
-    return dict(samples=len(ds.samples), envmaps=len(maps), envmaps_in_train_split=shared)
-
-
-def split_warnings(r: dict) -> list[str]:
-    """One warning line per reason a result's means say less than they seem to: test env maps that the train
-    split also uses, too few samples."""
-    lines, where = [], f"{r['dataset']}'s {r.get('split', 'test')} split"
-    if r.get("envmaps_in_train_split"):
-        lines.append(f"warning: {where} is lit by {r['envmaps_in_train_split']} of its {r['envmaps']} env maps that "
-                     "its train split also uses: the light is not scored on unseen maps (the set has too few maps "
-                     "to hold some out; generate it with more --num-envmaps)")
-    if r.get("samples", MIN_SAMPLES) < MIN_SAMPLES:
-        lines.append(f"warning: {where} holds {r['samples']} samples (objects under a map) on {r['envmaps']} env "
-                     f"maps, fewer than {MIN_SAMPLES}: its means say little")
-    return lines
-
-
-def write_figure(rows: list, path: Path, title: str, row_labels: list[str] | None = None) -> None:
-    """Qualitative results like the paper's Fig. O-Q: one test view per row."""
-    plt = pyplot()
-    ratios = [2 if c.startswith("light") else 1 for c in FIGURE_COLUMNS]
-    fig, axes = plt.subplots(len(rows), len(FIGURE_COLUMNS), figsize=(2.2 * len(FIGURE_COLUMNS) + 1.2, 1.9 * len(rows)),
-                             gridspec_kw=dict(width_ratios=ratios), squeeze=False)
-    for i, row in enumerate(rows):
-        for j, img in enumerate(row):
-            ax = axes[i, j]
-            ax.imshow(img.clamp(0, 1).numpy())
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if i == 0:
-                ax.set_title(FIGURE_COLUMNS[j], fontsize=9)
-            if j == 0 and row_labels:
-                ax.set_ylabel(row_labels[i], fontsize=8)
-    fig.suptitle(title, fontsize=10)
-    save_figure(fig, path, dpi=110)
-
-
-def write_direction_figures(results: list[dict], out: Path) -> list[Path]:
-    """``direction_<dataset>.png``: per dataset, the share of test views (those with a dominant light) whose
-    dominant-light direction error is at most x degrees, for each default seed-0 run and the constant guess."""
-    plt = pyplot()
-    written = []
-    for dataset in sorted({r["dataset"] for r in results}):
-        runs = [r for r in results if r["dataset"] == dataset and not r.get("variant") and r["seed"] == 0
-                and r.get("trained_on", dataset) == dataset and r.get("direction_deg_views")]
-        if not runs:
-            continue
-        fig, ax = plt.subplots(figsize=(5.2, 3.6))
-        curves = [(f"{r['shading'].upper()} (median {r['direction_deg']:.0f}°)", r["direction_deg_views"], "-")
-                  for r in sorted(runs, key=lambda r: r["shading"])]
-        const = runs[0]
-        curves.append((f"constant: straight above (median {const['direction_deg_constant']:.0f}°)",
-                       const["direction_deg_constant_views"], "--"))
-        for label, errors, style in curves:
-            e = torch.tensor(sorted(errors))
-            ax.step(torch.cat([torch.zeros(1), e]).numpy(), torch.arange(len(e) + 1).numpy() / len(e),
-                    style, where="post", label=label)
-        ax.axvline(30, color="grey", lw=0.8, ls=":")
-        ax.set(xlim=(0, 180), ylim=(0, 1), xlabel="dominant-light direction error (°)",
-               ylabel="share of views with at most this error",
-               title=f"{dataset}: {len(const['direction_deg_views'])} test views with a sun or lamp")
-        ax.legend(fontsize=8, loc="lower right")
-        written.append(save_figure(fig, out / f"direction_{dataset}.png", dpi=110))
-    return written
-
-
-def dataset_label(r: dict) -> str:
-    """The evaluated dataset, and the one the run was trained on where that is another."""
-    trained = r.get("trained_on", r["dataset"])
-    return r["dataset"] if trained == r["dataset"] else f"{r['dataset']} (trained on {trained})"
-
-
-def share_with_interval(share: float | None, interval: list | None) -> str:
-    """'45 % (29–61)': a share and its 95 % interval in percent; '' where the run has none (no view with a dominant
-    light, or evaluated before the intervals were)."""
-    if share is None or interval is None or share != share:
-        return ""
-    return f"{100 * share:.0f} % ({100 * interval[0]:.0f}–{100 * interval[1]:.0f})"
-
-
-ALL_RUNS_HEADER = ("dataset", "method", "variant", "K", "seed", "iterations", "Image L1 (whole)", "Image L1 (fg)",
-                   "2D IoU loss", "Light 1-NCC (LDR)", "Light 1-NCC (HDR)", "Tex 1-NCC", "Chamfer", "diffuse probe",
-                   "metal probe", "mirror probe", "colour (°)", "direction (°)", "≤ 25° (95 % interval)", "normal (°)")
-
-
-def constant_rows(results: list[dict]) -> list[dict]:
-    """One reference row per evaluated dataset and split: every light metric of a constant env map, under the
-    metric's own name (from the first result that has them)."""
-    rows = {}
-    for r in results:
-        key = (r["dataset"], r.get("split", "test"))
-        if key not in rows and "light_ldr_constant" in r:
-            rows[key] = {"dataset": r["dataset"], "shading": "constant light", "split": key[1],
-                         **{k.removesuffix("_constant"): r.get(k) for k in CONSTANT_REFERENCES}}
-    return list(rows.values())
-
-
-def write_table(results: list[dict], out: Path) -> str:
-    """all_runs.md / .csv: every result, then each dataset's constant-light reference row; the CSV also gives each
-    light metric's reference beside every run."""
-    out.mkdir(parents=True, exist_ok=True)
-    cols = ["dataset", "dataset_kind", "trained_on", "split", "shading", "variant", "lobes", "seed", "iteration",
-            *METRICS, *LIGHT_METRICS, *CONSTANT_REFERENCES, "direction_within_25", "normal_deg"]
-    write_csv(out / "all_runs.csv", results, cols, extrasaction="ignore")
-
-    def cells(r):
-        sg = r["shading"] in ("sg", "sh-sg")
-        return [dataset_label(r), r["shading"], r.get("variant", ""), r["lobes"] if sg else "", r.get("seed", ""),
-                r.get("iteration", ""), *(format_number(r.get(k), ".4f") for k in METRICS),
-                *(format_number(r.get(k), ".3g") for k in LIGHT_METRICS),
-                share_with_interval(r.get("direction_within_25"), r.get("direction_within_25_ci")),
-                format_number(r.get("normal_deg"), ".3g")]
-
-    rows = [cells(r) for r in (*results, *constant_rows(results))]
-    text = markdown_table(ALL_RUNS_HEADER, rows, "llllrr" + "r" * (len(METRICS) + len(LIGHT_METRICS) + 2)) + "\n"
-    (out / "all_runs.md").write_text(text)
-    return text
 
 
 def cached_result(path: Path, key: dict) -> dict | None:
@@ -327,7 +60,7 @@ def cached_result(path: Path, key: dict) -> dict | None:
 def evaluate_and_write(run: Path, path: Path, key: dict, args) -> dict:
     """Evaluate one run and write its result JSON and figures (the JSON last: it marks the run as done)."""
     r, figures = evaluate_run(run, args.dataset, eval_spp=args.spp, view_stride=args.view_stride, split=args.split,
-                              refine_steps=args.refine_steps)
+                              refine_steps=args.refine_steps, device=args.device)
     r["spp"] = args.spp
     r["evaluated"] = key
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -443,10 +176,14 @@ def main(argv=None) -> int:
     ap.add_argument("--dataset", metavar="DIR",
                     help="evaluate every run on this dataset instead of the one it was trained on (e.g. the same "
                          "objects under other env maps; use another --out)")
-    ap.add_argument("--refine-steps", type=non_negative_int, default=0, metavar="N",
+    ap.add_argument("--refine-steps", type=int_in(0, MAX_STEPS), default=0, metavar="N",
                     help="refine each prediction's light at test time with N Adam steps against its input view "
-                         "(pipelines.refine; use another --out) (default: 0, off)")
+                         f"(pipelines.training.refine; at most {MAX_STEPS}; use another --out) (default: 0, off)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                    help="where the model predicts and renders (the metrics are taken on the CPU) (default: cpu)")
     args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
     if args.split == "all" and not args.dataset:
         ap.error("--split all evaluates every sample of another dataset (--dataset DIR): on a run's own dataset it "
                  "would count the samples it trained on; use --split test")
@@ -484,6 +221,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -34,9 +34,9 @@ from dibrpp.cli_args import (Parser, check_output_folder, finite_float, int_in, 
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
-from .model_input import MAX_LOG_RADIANCE, encoder_input
-from .refine import MAX_STEPS, refine_light
-from .runs import load_camera, load_run, make_renderer, run_folder
+from .model.model_input import MAX_LOG_RADIANCE, encoder_input
+from .training.refine import MAX_STEPS, refine_light
+from .training.runs import load_camera, load_run, make_renderer, run_folder
 
 MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
 # The brightest light the model predicts (and the most its input decodes to): no light it can place explains
@@ -117,12 +117,12 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
-            views: int = 4, spp: int = 64, refine_steps: int = 0) -> dict:
+            views: int = 4, spp: int = 64, refine_steps: int = 0, device: str = "cpu") -> dict:
     check_output_folder("--out", out)
     image_rgba = read_input(image, background, tolerance)  # a bad image is refused before the model loads
     say(f"loading {run}")
     loaded = load_run(run)
-    config, model = loaded.config, loaded.model
+    config, model = loaded.config, loaded.model.to(device)
     size = model.config.image_size  # the side of the images the run trained on
     setup = load_camera(run)
     orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
@@ -132,13 +132,14 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
             "the full range and places the light best from a linear EXR of the same view")
     say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, size)
-    pred = model(encoder_input(rgba[None]), cam)
+    pred = model(encoder_input(rgba[None].to(device)), cam.to(device))
     gain, t0 = torch.ones(1), time.perf_counter()
     if refine_steps:
         say(f"refining the light: {refine_steps} steps against the input view")
         with RefineProgress(refine_steps) as progress:
-            pred, gain = refine_light(pred, cam, rgba[None], make_renderer(config, seed=0, training=True),
-                                      refine_steps, on_step=progress)
+            pred, gain = refine_light(pred, cam.to(device), rgba[None].to(device),
+                                      make_renderer(config, seed=0, training=True), refine_steps, on_step=progress)
+    pred, gain = pred.to("cpu"), gain.cpu()  # written and rendered from here on the CPU
     light = pred.light(cam.world_to_camera)
     out.mkdir(parents=True, exist_ok=True)
     mesh = pred.meshes()
@@ -215,17 +216,22 @@ def build_parser() -> Parser:
     ap.add_argument("--views", type=positive_int, default=4, metavar="N", help="novel views rendered around the object")
     ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel of the novel views")
     ap.add_argument("--refine-steps", type=int_in(0, MAX_STEPS), default=0, metavar="N",
-                    help=f"refine the predicted light with N Adam steps against the input view (pipelines.refine; "
+                    help=f"refine the predicted light with N Adam steps against the input view (pipelines.training.refine; "
                          f"tens suffice, at most {MAX_STEPS}; the time they take is shown as they run)")
+    ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                    help="where the model predicts and refines (the outputs are rendered on the CPU) (default: cpu)")
     return ap
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.error("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
     try:
         run = run_folder(args.checkpoint)
         material = predict(run, Path(args.image), Path(args.out), args.azimuth, args.background, args.tolerance,
-                           views=args.views, spp=args.spp, refine_steps=args.refine_steps)
+                           views=args.views, spp=args.spp, refine_steps=args.refine_steps, device=args.device)
     except (DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -7,7 +7,7 @@
 
 Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape/texture/material/light
 from both views and renders every prediction in both views with the light of the view it is rendered
-in (eq. 8; :mod:`pipelines.objective`); Adam's rate decays over the run's last third (``lr_schedule``).
+in (eq. 8; :mod:`pipelines.training.objective`); Adam's rate decays over the run's last third (``lr_schedule``).
 Checkpoints are atomic; ``--resume`` continues bit-for-bit (batches are drawn from a generator seeded by
 (seed, iteration), and the RNG state is saved) and refuses changed settings. Every TrainConfig field is a
 flag; settings apply in the order preset < variant < --config < flags.
@@ -35,12 +35,12 @@ from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
 from dibrpp.mesh import uniform_laplacian
 
-from . import runs
-from .config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides, describe_variants,
+from .training import runs
+from .training.config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides, describe_variants,
                      variant_runs)
-from .dataset import TrainingViews
-from .objective import multiview_losses
-from .runs import load_checkpoint, make_model, make_optimizer, save_checkpoint
+from .training.dataset import TrainingViews
+from .training.objective import multiview_losses
+from .training.runs import load_checkpoint, make_model, make_optimizer, save_checkpoint
 
 def check_finite(terms: dict) -> None:
     for name, value in terms.items():

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipelines.config import TrainConfig
+from pipelines.training.config import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 FAKE_DATASET = "fake-dataset"  # a folder of this name stands for a dataset (see fake_reader)

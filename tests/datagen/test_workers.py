@@ -1,6 +1,5 @@
 """Worker processes never outlive their run: kill -9 of ``python -m datagen`` takes its bpy workers (~800 MB
 each) with it, and none of them finishes a sample afterwards. Real processes, real Cycles, tiny sizes."""
-import os
 import signal
 import subprocess
 import sys

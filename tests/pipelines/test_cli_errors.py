@@ -14,7 +14,9 @@ import pytest
 from PIL import Image
 
 from dibrpp.io import read_image, write_exr
-from pipelines import evaluate, predict, train
+from pipelines import evaluate
+from pipelines import predict
+from pipelines import train
 
 REPO = Path(__file__).resolve().parents[2]
 

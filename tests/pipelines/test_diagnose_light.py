@@ -10,7 +10,7 @@ from dibrpp.lights import SGLight
 from dibrpp.mesh import Meshes, icosphere
 from dibrpp.sg import sg_integral
 from pipelines.diagnose_light import probe_to_world, with_cue_sun
-from pipelines.light_probe import (ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples,
+from pipelines.model.light_probe import (ProbeLightHead, camera_to_probe, cue_sun_power, mirror_directions, pixel_samples,
                                   sg_on_grid)
 
 
@@ -85,7 +85,7 @@ def test_probe_sun_stays_above_the_horizon_and_keeps_at_least_the_cues_power():
 def test_normal_turn_is_the_largest_angle_to_a_covered_neighbour():
     """A 4 x 4 view whose left half faces +x and right half +y: the two columns at the break turn 90 degrees, the
     others none; an uncovered neighbour does not count, and an uncovered pixel turns 0."""
-    from pipelines.metrics import normal_turn_deg
+    from pipelines.evaluation.metrics import normal_turn_deg
     n = torch.zeros(1, 4, 4, 3)
     n[..., :2, 0], n[..., 2:, 1] = 1.0, 1.0
     turn = normal_turn_deg(n.view(1, 16, 3), torch.ones(1, 16), 4).view(4, 4)
@@ -100,7 +100,7 @@ def test_normal_errors_are_zero_on_the_true_surface_and_counted_where_it_mirrors
     """The same sphere as prediction and GT: no error anywhere; the sun straight back at the camera is mirrored by
     the pixels facing it, a sun straight behind the sphere by none (NaN); a sphere squashed in depth is wrong
     where it is seen."""
-    from pipelines.metrics import normal_errors
+    from pipelines.evaluation.metrics import normal_errors
     sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 24)
     rgba = torch.ones(1, 24, 24, 4)
     _, to_camera, _, weight = pixel_samples(sphere, cams, rgba[..., :3], rgba[..., 3])
@@ -150,7 +150,7 @@ def test_sun_pixels_are_the_reflection_in_views_that_show_one_and_none_under_a_b
     assert bright.sum(1).min() > 0 and torch.equal(w > 0, bright)
     assert float(sun_pixels(torch.ones_like(radiance), weight).sum()) == 0  # a uniform sky has no sun
     from pipelines.diagnose_light import consensus_directions, sun_pixel_sums
-    from pipelines.metrics import angle_deg
+    from pipelines.evaluation.metrics import angle_deg
     found = consensus_directions(sun_pixel_sums(sphere, cams, images), torch.tensor([0, 0]))
     for d in found.values():  # through the true surface every view, and both together, mirror the sun
         assert float(angle_deg(d, sun.expand_as(d)).max()) < 3.0
@@ -169,7 +169,7 @@ def test_the_facing_sun_cue_leaves_out_the_grazing_pixels_and_the_sun_follows_it
     """The facing cue: on a sphere the pixels that graze the camera (n.v < 0.3) mirror the directions within ~35
     degrees of straight behind it; the facing cue covers none of those, the full cue does; and the head's sun is
     read off the cue it is given (its brightest cell), the sky lobes off the full grid."""
-    from pipelines.light_probe import FACING_MIN, facing_mirror_cue, probe_grid
+    from pipelines.model.light_probe import FACING_MIN, facing_mirror_cue, probe_grid
 
     sphere, cams = icosphere(3, radius=10.0), Cameras.orbit(40.0, 25.0, 30.0, 40.0, 48)
     rgba = torch.ones(1, 48, 48, 4)

@@ -16,7 +16,7 @@ def test_the_template_fitted_to_the_gt_normals_comes_closer_than_the_sphere(tiny
 
 def test_sunny_samples_are_under_a_sun_and_give_the_normals_where_it_is_mirrored(tiny_glossy):
     from datagen.reader import MultiViewDataset
-    from pipelines import metrics
+    from pipelines.evaluation import metrics
     ds = MultiViewDataset(str(tiny_glossy), split="test", views_per_item=1)
     sunny = diagnose_shape.fitted_samples(ds, objects=4, sunny=True)
     every = diagnose_shape.fitted_samples(ds, objects=4, sunny=False)

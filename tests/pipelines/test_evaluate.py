@@ -8,7 +8,10 @@ from unittest import mock
 import pytest
 
 from dibrpp.io import DataError
-from pipelines import evaluate, train
+from pipelines import evaluate, scoring
+from pipelines.evaluation import summary
+from pipelines.training import runs
+from pipelines import train
 
 
 def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_maps, tmp_path, capsys):
@@ -21,7 +24,7 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     assert evaluate.main(["--runs", str(runs), "--out", str(out)]) == 0
     r = json.loads((out / "glossy" / "sh-seed0.json").read_text())
     assert r["shading"] == "sh" and r["iteration"] == 2 and r["test_views"] > 0 and r["dataset_kind"] == "glossy"
-    for k in ("iou", "light_ldr", "light_hdr", "texture", *evaluate.CONSTANT_REFERENCES):
+    for k in ("iou", "light_ldr", "light_hdr", "texture", *summary.CONSTANT_REFERENCES):
         assert k.startswith(("colour", "direction")) or 0 <= r[k] <= 1, (k, r[k])
     assert r["image_whole"] > 0 and r["image_foreground"] > 0 and 0 < r["chamfer"] < 1
     assert len(r["direction_deg_views"]) == len(r["direction_deg_constant_views"]) == r["views_with_dominant_light"]
@@ -84,12 +87,12 @@ def test_direction_figure_shows_default_seed0_runs_with_views_that_have_a_domina
     results = [result("glossy", "sg", [10.0, 20.0, 90.0]), result("glossy", "sh", [30.0, 40.0, 120.0]),
                result("glossy", "sg", [1.0, 2.0, 3.0], variant="light_colour=free"),  # an ablation: not shown
                result("diffuse", "sg", [])]  # no view with a dominant light: no figure
-    written = evaluate.write_direction_figures(results, tmp_path)
+    written = summary.write_direction_figures(results, tmp_path)
     assert written == [tmp_path / "direction_glossy.png"] and written[0].stat().st_size > 1000
 
 
 def _fake_run(folder, dataset):
-    from pipelines.config import TrainConfig
+    from pipelines.training.config import TrainConfig
 
     folder.mkdir(parents=True)
     (folder / "config.json").write_text(json.dumps(TrainConfig(dataset=dataset).to_dict()))
@@ -98,7 +101,7 @@ def _fake_run(folder, dataset):
 
 
 def test_runs_that_share_a_folder_name_keep_their_results_apart(tmp_path, capsys):
-    from pipelines.runs import find_runs
+    from pipelines.training.runs import find_runs
 
     root, out = tmp_path / "runs", tmp_path / "eval"
     for parent in ("a", "b"):
@@ -173,10 +176,10 @@ def test_a_second_evaluate_into_one_out_is_refused_while_the_first_runs(tmp_path
 
 def test_a_set_of_another_image_size_is_refused_before_anything_is_predicted():
     ds = SimpleNamespace(resolution=33, root=Path("data/odd"))
-    evaluate.check_image_size(Path("runs/r"), 33, ds)  # the same size: fine
+    runs.check_image_size(Path("runs/r"), 33, ds)  # the same size: fine
     with pytest.raises(DataError, match=r"runs/r was trained on 32x32 images but data/odd holds 33x33; .*"
                                         r"--resolution 32\) or a run trained on data/odd"):
-        evaluate.check_image_size(Path("runs/r"), 32, ds)
+        runs.check_image_size(Path("runs/r"), 32, ds)
 
 
 def test_a_split_that_says_little_is_warned_about():
@@ -184,14 +187,14 @@ def test_a_split_that_says_little_is_warned_about():
         return SimpleNamespace(samples=samples, manifest={"objects": objects})
 
     objects = [dict(split="train", envmaps=[0, 1]), dict(split="test", envmaps=[1, 2]), dict(split="test", envmaps=[3])]
-    size = evaluate.split_size(ds([(1, 1), (1, 2), (2, 3)], objects), "test")
+    size = scoring.split_size(ds([(1, 1), (1, 2), (2, 3)], objects), "test")
     assert size == dict(samples=3, envmaps=3, envmaps_in_train_split=1)  # map 1 lights a train object too
-    assert evaluate.split_size(ds([(0, 0), (0, 1)], objects), "train")["envmaps_in_train_split"] is None
+    assert scoring.split_size(ds([(0, 0), (0, 1)], objects), "train")["envmaps_in_train_split"] is None
     r = dict(dataset="tiny", split="test", **size)
-    lines = evaluate.split_warnings(r)
+    lines = scoring.split_warnings(r)
     assert lines == ["warning: tiny's test split is lit by 1 of its 3 env maps that its train split also uses: the "
                      "light is not scored on unseen maps (the set has too few maps to hold some out; generate it "
                      "with more --num-envmaps)",
                      f"warning: tiny's test split holds 3 samples (objects under a map) on 3 env maps, fewer than "
-                     f"{evaluate.MIN_SAMPLES}: its means say little"]
-    assert evaluate.split_warnings(dict(r, samples=40, envmaps_in_train_split=0)) == []
+                     f"{scoring.MIN_SAMPLES}: its means say little"]
+    assert scoring.split_warnings(dict(r, samples=40, envmaps_in_train_split=0)) == []

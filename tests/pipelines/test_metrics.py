@@ -6,7 +6,7 @@ import pytest
 import torch
 import trimesh
 
-from pipelines import metrics
+from pipelines.evaluation import metrics
 
 
 def test_identical_inputs_score_zero():

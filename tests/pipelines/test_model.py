@@ -9,12 +9,12 @@ import torch
 from dibrpp import Cameras, Renderer
 from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
-from dibrpp.mesh import icosphere, uniform_laplacian, vertex_normals
-from pipelines import losses
-from pipelines.light_probe import compress_radiance, pixel_samples
-from pipelines.model import Encoder, ModelConfig, squash
-from pipelines.prediction import white_balance
-from pipelines.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
+from dibrpp.mesh import icosphere
+from pipelines.training import losses
+from pipelines.model.light_probe import compress_radiance, pixel_samples
+from pipelines.model.encoder import Encoder, ModelConfig, squash
+from pipelines.model.prediction import white_balance
+from pipelines.model.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
 
 
 def _cams(n, size=32):

@@ -7,7 +7,8 @@ import trimesh
 from PIL import Image
 
 from dibrpp.io import read_exr, read_image, write_exr
-from pipelines import predict, train
+from pipelines import predict
+from pipelines import train
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +60,7 @@ def test_rgb_input_needs_a_background_and_errors_are_clear(run, tmp_path, capsys
 @pytest.fixture
 def fake_run(tmp_path, monkeypatch):
     """A folder that passes for a run; loading it fails the test (bad input must be refused before)."""
-    from pipelines.config import TrainConfig
+    from pipelines.training.config import TrainConfig
 
     run = tmp_path / "run"
     run.mkdir()

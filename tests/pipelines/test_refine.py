@@ -3,11 +3,11 @@ import torch
 
 from dibrpp import Cameras, Renderer
 from dibrpp.lights import SGLight
-from pipelines import metrics
-from pipelines.losses import foreground_l1, hdr_srgb
-from pipelines.model import Encoder, ModelConfig
-from pipelines.model_input import encoder_input
-from pipelines.refine import refine_light
+from pipelines.evaluation import metrics
+from pipelines.training.losses import foreground_l1, hdr_srgb
+from pipelines.model.encoder import Encoder, ModelConfig
+from pipelines.model.model_input import encoder_input
+from pipelines.training.refine import refine_light
 
 
 @pytest.mark.parametrize("shading", ["sg", "mc"])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dibrpp.io import write_png
-from pipelines.report import write_report
+from pipelines.evaluation.report import write_report
 
 BROWSER = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 

@@ -2,7 +2,7 @@
 claims judged, sets placed by their manifest's kind."""
 import json
 
-from pipelines import tables
+from pipelines.evaluation import tables
 
 
 def write_run(root, dataset, shading, seed, light, lobes=32, image=0.03, light_constant=0.35, probe_metal=0.3,

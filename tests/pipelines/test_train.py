@@ -12,14 +12,14 @@ from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines import pixel_normals
-from pipelines.config import ConfigError, TrainConfig
-from pipelines.dataset import TrainingViews
-from pipelines.losses import (SUN_TARGET_KAPPA, foreground_l1, gradient_loss, independent_abs, normal_loss,
-                              sun_direction_loss)
-from pipelines.model_input import encoder_input
-from pipelines.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
-from pipelines.runs import PIXEL_NORMALS, fitted_pixel_normals, make_model, make_optimizer, make_renderer
+from pipelines.model.encoder import pixel_normals
+from pipelines.training.config import ConfigError, TrainConfig
+from pipelines.training.dataset import TrainingViews
+from pipelines.model.pixel_normals import normal_loss
+from pipelines.training.losses import SUN_TARGET_KAPPA, foreground_l1, gradient_loss, independent_abs, sun_direction_loss
+from pipelines.model.model_input import encoder_input
+from pipelines.training.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
+from pipelines.training.runs import PIXEL_NORMALS, fitted_pixel_normals, make_model, make_renderer
 from pipelines.train import learning_rate_factor, train
 
 
@@ -356,9 +356,9 @@ def test_non_finite_loss_stops_with_a_clear_message_and_keeps_the_checkpoint(tin
     out = tmp_path / "nan"
     train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=4), progress=False)
     before = (out / "checkpoint.pt").read_bytes()
-    import pipelines.objective
+    import pipelines.training.objective
 
-    monkeypatch.setattr(pipelines.objective, "gradient_loss", lambda *a, **kw: torch.tensor(float("nan")))
+    monkeypatch.setattr(pipelines.training.objective, "gradient_loss", lambda *a, **kw: torch.tensor(float("nan")))
     with pytest.raises(FloatingPointError, match="total loss became nan"):
         train(config(tiny_glossy, out, shading="sg", lobes=4, iterations=8), resume=True, progress=False)
     assert (out / "checkpoint.pt").read_bytes() == before
@@ -384,7 +384,7 @@ def test_paper_presets_generate_and_train(tmp_path):
 
 
 def test_cross_view_renders_are_lit_by_the_views_light_and_again_by_the_predictions_own():
-    from pipelines.objective import render_plan
+    from pipelines.training.objective import render_plan
     view = render_plan(2, TrainConfig(cross_view_light="view"))
     both = render_plan(2, TrainConfig())
     assert TrainConfig().cross_view_light == "both"
@@ -404,7 +404,7 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     from dibrpp.brdf import Material
     from dibrpp.lights import SGLight
     from dibrpp.mesh import icosphere
-    from pipelines.objective import render_sun_on_held_surface
+    from pipelines.training.objective import render_sun_on_held_surface
 
     sphere = icosphere(2, radius=10.0)
     verts = sphere.verts.clone().requires_grad_(True)
@@ -458,8 +458,8 @@ def test_independent_samples_are_mcs_under_its_probe_sun_only():
 def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_path):
     """MC's grid is the SG light on it (the head's SG sky and sun); the run loads as such, predicts a grid and the
     sun's distribution, and resumes."""
-    from pipelines.model_input import encoder_input
-    from pipelines.runs import load_run
+    from pipelines.model.model_input import encoder_input
+    from pipelines.training.runs import load_run
     out = tmp_path / "mc-sun"
     train(config(tiny_glossy, out, shading="mc", iterations=2), progress=False)
     run = load_run(out)
@@ -482,9 +482,9 @@ def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
     from dibrpp.brdf import Material
     from dibrpp.lights import EnvMap, SGLight
     from dibrpp.mesh import icosphere
-    from pipelines.light_probe import sg_on_grid, world_to_probe
-    from pipelines.model_input import encoder_input
-    from pipelines.objective import render_sky_and_sun
+    from pipelines.model.light_probe import sg_on_grid, world_to_probe
+    from pipelines.model.model_input import encoder_input
+    from pipelines.training.objective import render_sky_and_sun
 
     torch.manual_seed(0)
     model = make_model(TrainConfig(shading="mc"), 32).eval()
@@ -557,7 +557,7 @@ def _version_8_run(folder: Path, **changes) -> Path:
 
 
 def test_a_run_written_before_the_house_change_reads_as_it_was_or_is_refused_naming_the_commit(tmp_path):
-    from pipelines.runs import load_config
+    from pipelines.training.runs import load_config
 
     assert load_config(_version_8_run(tmp_path / "default")) == TrainConfig(predict_metallic=False)
     mc = load_config(_version_8_run(tmp_path / "mc", shading="mc", mc_loss_samples="independent", sun_lobe="probe"))
@@ -575,22 +575,26 @@ def test_a_run_written_before_the_house_change_reads_as_it_was_or_is_refused_nam
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
-    from pipelines.model import MODEL_VERSION, ModelConfig
+    from pipelines.model.encoder import MODEL_VERSION, ModelConfig
+    from pipelines.training.earlier_runs import earlier_model_config
 
     today = ModelConfig(light_head="probe").to_dict()
     v8 = {**today, "version": 8, "light_scale": "softplus", "probe_start": "luminance", "probe_samples": "pixels",
           "light_prior": 0, "shape_detail": "none", "sun_min_sharpness": 0.5, "sun_lobe": "probe", "sun_cue": "facing",
           "sun_axis": "cue-on-metal"}
-    assert ModelConfig.from_dict(v8) == ModelConfig(light_head="probe") and MODEL_VERSION == 9
-    assert ModelConfig.from_dict({**v8, "light_head": "global", "sun_lobe": "learned"}).light_head == "global"
+    read = lambda d: ModelConfig.from_dict(earlier_model_config(d, MODEL_VERSION))  # noqa: E731
+    assert read(v8) == ModelConfig(light_head="probe") and MODEL_VERSION == 9
+    assert read({**v8, "light_head": "global", "sun_lobe": "learned"}).light_head == "global"
     with pytest.raises(ValueError, match="sun_axis='head'.*35af5d2"):
-        ModelConfig.from_dict({**v8, "sun_axis": "head"})
+        read({**v8, "sun_axis": "head"})
     with pytest.raises(ValueError, match="model version 7"):
-        ModelConfig.from_dict({**v8, "version": 7})
+        read({**v8, "version": 7})
+    with pytest.raises(ValueError, match="model version 8"):
+        ModelConfig.from_dict(v8)  # the model reads its own version; the run folder reads the one before
 
 
 def test_the_published_model_regresses_its_light_and_texture_and_trains(tiny_glossy, tmp_path):
-    from pipelines.variants import PUBLISHED, VARIANTS
+    from pipelines.training.variants import PUBLISHED, VARIANTS
 
     cfg = TrainConfig.from_dict(dict(dataset=str(tiny_glossy), out=str(tmp_path / "p"), lobes=4, iterations=2,
                                      batch_objects=2, threads=1, variant="published"))
@@ -602,7 +606,7 @@ def test_the_published_model_regresses_its_light_and_texture_and_trains(tiny_glo
 
 
 def test_the_image_loss_in_clipped_space_has_no_gradient_above_1():
-    from pipelines.losses import image_space
+    from pipelines.training.losses import image_space
 
     x = torch.tensor([0.5, 2.0], requires_grad=True)
     image_space(x, clipped=True).sum().backward()

@@ -18,7 +18,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .losses import normal_loss
 
 LEARNING_RATE = 2e-3  # the one-cycle schedule's peak
 FIT_STEPS, FIT_BATCH = 3000, 32  # ~15 min on 2 cores at 64 x 64; ~25 passes over the metallic set's 3840 views
@@ -29,6 +28,14 @@ MIRROR_X = (-1.0, 1.0, 1.0)  # a camera-frame normal of the image flipped left-r
 def _block(cin: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(cin, cout, 3, padding=1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2),
                          nn.Conv2d(cout, cout, 3, padding=1), nn.GroupNorm(8, cout), nn.LeakyReLU(0.2))
+
+
+def normal_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """1 - cos between two normal renders' (``Renderer.render_normals(...).image``: (B, H, W, 4) normal and
+    coverage) over the pixels both cover."""
+    both = (pred[..., 3] > 0.5) & (target[..., 3] > 0.5)
+    cos = (F.normalize(pred[..., :3], dim=-1, eps=1e-12) * target[..., :3]).sum(-1)
+    return ((1 - cos) * both).sum() / both.sum().clamp_min(1)
 
 
 class PixelNormalNet(nn.Module):

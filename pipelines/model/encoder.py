@@ -31,14 +31,13 @@ from dibrpp.brdf import MIN_ALPHA
 from dibrpp.camera import Cameras
 from dibrpp.mesh import Meshes, icosphere, vertex_normals
 
-from .earlier_runs import earlier_model_config
 from .light_probe import ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
 from .model_input import MAX_LOG_RADIANCE, clip_input, input_grid, input_radiance
 from .pixel_normals import PixelNormalNet
 from .prediction import LIGHT_KINDS, Prediction, white_balance
 from .template import mirror_index, texel_barycentrics
 
-MODEL_VERSION = 9  # bump when parameters or their meaning change: a checkpoint of another version is refused
+MODEL_VERSION = 9  # bump when parameters or their meaning change (training.earlier_runs reads version 8)
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 
 # the allowed values of the model's string options
@@ -61,13 +60,13 @@ class ModelConfig:
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
     light_colour: str = "white"  # white: white-balanced light | free: any colour
     # global: the light regressed from the global code | probe: read from the input through the predicted
-    # geometry (pipelines.light_probe), in the probe frame
+    # geometry (pipelines.model.light_probe), in the probe frame
     light_head: str = "global"
     # what the encoder sees of the input: its full range (an EXR's sun reflections; :func:`encoder_input`) or
     # clipped at 1, as an 8-bit picture shows it
     input_range: str = "full"
     # the normals the probe head's mirror cue reads: the predicted surface's, or, in evaluation (not in training),
-    # an image-space network's (pipelines.pixel_normals, fitted to the GT mesh's)
+    # an image-space network's (pipelines.model.pixel_normals, fitted to the GT mesh's)
     probe_normals: str = "surface"
     env_height: int = 16
     env_width: int = 32
@@ -94,7 +93,9 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
-        d = earlier_model_config(d, MODEL_VERSION)
+        if d.get("version") != MODEL_VERSION:
+            raise ValueError(f"the checkpoint was written by model version {d.get('version')}, this code reads version "
+                             f"{MODEL_VERSION}; retrain it (e.g. `make train-glossy`)")
         names = {f.name for f in fields(cls)}
         unknown = set(d) - names - {"version"}
         if unknown:
@@ -247,7 +248,7 @@ class Encoder(nn.Module):
 
     def _probe_light(self, images: torch.Tensor, verts: torch.Tensor, cameras: Cameras, code: torch.Tensor,
                      metallic: torch.Tensor, pixel_normals: torch.Tensor | None = None) -> dict:
-        """The light read from the input through the predicted surface (pipelines.light_probe); ``pixel_normals``
+        """The light read from the input through the predicted surface (pipelines.model.light_probe); ``pixel_normals``
         (B, S, S, 3): the normals its pixels read instead of the surface's (held: fitted apart from the model)."""
         b = images.shape[0]
         normals, to_camera, radiance, weight = pixel_samples(self.template().with_verts(verts), cameras,
@@ -278,7 +279,7 @@ class Encoder(nn.Module):
         return images if self.config.input_range == "full" else clip_input(images)
 
     def forward(self, images: torch.Tensor, cameras: Cameras | None = None) -> Prediction:
-        """images: (B, 4, S, S) from :func:`pipelines.model_input.encoder_input`; cameras: the B input views (needed by the
+        """images: (B, 4, S, S) from :func:`pipelines.model.model_input.encoder_input`; cameras: the B input views (needed by the
         projected texture and the probe light head)."""
         c = self.config
         images = self.visible_input(images)

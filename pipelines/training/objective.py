@@ -17,10 +17,11 @@ from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
 from .config import SG_LIGHT, TrainConfig
-from .light_probe import world_to_probe
-from .losses import (foreground_l1, gradient_loss, image_space, normal_loss, soft_iou_loss, sun_supervision_loss,
+from ..model.light_probe import world_to_probe
+from .losses import (foreground_l1, gradient_loss, image_space, soft_iou_loss, sun_supervision_loss,
                      supervised_light_loss)
-from .model_input import encoder_input
+from ..model.model_input import encoder_input
+from ..model.pixel_normals import normal_loss
 
 
 # The sun supervision's negative log-likelihood is ~3 where the image terms are ~0.2: at weight 1 its gradient

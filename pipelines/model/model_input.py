@@ -3,7 +3,7 @@
 Colour is sRGB-encoded up to 1 and logarithmic above, so an EXR's sun reflection stays visible to the encoder
 while an 8-bit picture's tensor is exactly the sRGB one; a model trained on clipped input clips it itself
 (:func:`clip_input`; ``ModelConfig.input_range``). The loss compares images in another curve
-(``pipelines.losses.hdr_srgb``, the display space's slope); this one keeps a CNN's input bounded.
+(``pipelines.training.losses.hdr_srgb``, the display space's slope); this one keeps a CNN's input bounded.
 """
 from __future__ import annotations
 

@@ -91,6 +91,12 @@ class Prediction:
         return Prediction(fn(self.verts), fn(self.texture), fn(self.roughness), fn(self.specular), fn(self.metallic),
                           light, self.config, self.template, optional(self.facing), optional(self.pixel_normals))
 
+    def to(self, device) -> "Prediction":
+        """The prediction with its tensors and template on ``device``."""
+        moved = self._replace(lambda t: t.to(device))
+        moved.template = self.template.to(device)
+        return moved
+
     def detached(self) -> "Prediction":
         return self._replace(torch.Tensor.detach)
 

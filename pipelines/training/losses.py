@@ -14,7 +14,7 @@ import torch.nn.functional as F
 
 from dibrpp.conventions import equirect_directions, orbit_world_to_camera
 
-from .metrics import SUN_FRACTION, ProbeScene, dominant_direction, si_rmse
+from ..evaluation.metrics import SUN_FRACTION, ProbeScene, dominant_direction, si_rmse
 
 
 def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
@@ -28,13 +28,6 @@ def image_space(rgb_linear: torch.Tensor, clipped: bool = False) -> torch.Tensor
     (clipped at 1: no gradient in highlights), the paper's."""
     return hdr_srgb(rgb_linear.clamp_max(1.0) if clipped else rgb_linear)
 
-
-def normal_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """1 - cos between two normal renders' (``Renderer.render_normals(...).image``: (B, H, W, 4) normal and
-    coverage) over the pixels both cover."""
-    both = (pred[..., 3] > 0.5) & (target[..., 3] > 0.5)
-    cos = (F.normalize(pred[..., :3], dim=-1, eps=1e-12) * target[..., :3]).sum(-1)
-    return ((1 - cos) * both).sum() / both.sum().clamp_min(1)
 
 
 def independent_abs(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -22,14 +22,16 @@ from pathlib import Path
 
 import torch
 
+from datagen.reader import MultiViewDataset
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
-from . import pixel_normals
+from ..model import pixel_normals
 from .config import ConfigError, TrainConfig
-from .earlier_runs import RetiredError, earlier_state_dict, earlier_train_config, is_earlier_config
-from .model import MODEL_VERSION, Encoder, ModelConfig
-from .model_input import encoder_input
+from .earlier_runs import (RetiredError, earlier_model_config, earlier_state_dict, earlier_train_config,
+                           is_earlier_config)
+from ..model.encoder import MODEL_VERSION, Encoder, ModelConfig
+from ..model.model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
 PIXEL_NORMALS = "pixel_normals.pt"  # variant pixel-normals: the network fitted before the model trains
@@ -144,10 +146,11 @@ def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
         raise DataError(f"{path} was written by an older version of the model (no model configuration saved with "
                         "it); retrain it, e.g. `make train-glossy`")
     try:
-        model = Encoder(ModelConfig.from_dict(state["model_config"]))
+        saved = state["model_config"]
         weights = state["model"]
-        if state["model_config"].get("version") != MODEL_VERSION:
-            weights = earlier_state_dict(weights)
+        if isinstance(saved, dict) and saved.get("version") != MODEL_VERSION:
+            saved, weights = earlier_model_config(saved, MODEL_VERSION), earlier_state_dict(weights)
+        model = Encoder(ModelConfig.from_dict(saved))
         model.load_state_dict(weights)
     except (ValueError, RuntimeError, TypeError) as e:
         raise DataError(f"{path}: {str(e).splitlines()[0]}") from e
@@ -197,7 +200,7 @@ def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
 
 def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: bool = False) -> None:
     """Variant pixel-normals: ``model``'s pixel-normal network fitted to the training views' GT normals
-    (:func:`pipelines.pixel_normals.fit`) before the model trains, kept in the run folder (a resumed run reads it
+    (:func:`pipelines.model.pixel_normals.fit`) before the model trains, kept in the run folder (a resumed run reads it
     back), and held (no gradient) from then on. ``data``: TrainingViews with its normals."""
     net, path = model.pixel_normals, out / PIXEL_NORMALS
     if path.exists():
@@ -232,3 +235,11 @@ def step_renderers(config: TrainConfig, iteration: int) -> tuple[Renderer, Rende
     if not config.independent_mc_samples():
         return first, None
     return first, make_renderer(config, seed=SECOND_SAMPLES_SEED + seed, training=True, spp=spp)
+
+
+def check_image_size(run: Path, image_size: int, ds: MultiViewDataset) -> None:
+    """A DataError unless the dataset's images are the size the run's model reads (as training refuses them)."""
+    if ds.resolution != image_size:
+        raise DataError(f"{run} was trained on {image_size}x{image_size} images but {ds.root} holds "
+                        f"{ds.resolution}x{ds.resolution}; evaluate it on a dataset rendered at {image_size} "
+                        f"(python -m datagen --resolution {image_size}) or a run trained on {ds.root}")

@@ -1,6 +1,6 @@
 """The registry of named models: the paper's model as published and its Table E ablations, the single-switch
 ablations of each way the default departs from the paper, the variant whose numbers the README cites, and the
-diagnostics that read ground truth. Each is a one-line description and the :class:`~pipelines.config.TrainConfig`
+diagnostics that read ground truth. Each is a one-line description and the :class:`~pipelines.training.config.TrainConfig`
 fields it sets, selected with ``--variant``; ``make train-variants`` trains the runs each lists. An experiment that
 lost has left the code: docs/experiments.md keeps its numbers and the commit where it last ran."""
 from __future__ import annotations

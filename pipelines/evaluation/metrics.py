@@ -19,7 +19,7 @@ import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
 
-from .light_probe import mirror_directions, pixel_samples
+from ..model.light_probe import mirror_directions, pixel_samples
 
 
 def image_l1_foreground(pred_rgb: torch.Tensor, gt_rgb: torch.Tensor, gt_mask: torch.Tensor) -> torch.Tensor:
@@ -103,7 +103,7 @@ class ProbeScene:
 
     def __init__(self, world_to_camera: torch.Tensor, resolution: int = 24, env_height: int = 24):
         from dibrpp.brdf import ShadingPoint, alpha_from_roughness
-        from dibrpp.conventions import LUMINANCE_WEIGHTS, equirect_directions
+        from dibrpp.conventions import equirect_directions
 
         self.batch, self.resolution, self.env_height = world_to_camera.shape[0], resolution, env_height
         rot = world_to_camera[:, :3, :3].float()

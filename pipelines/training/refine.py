@@ -15,9 +15,9 @@ import torch
 import torch.nn.functional as F
 
 from .losses import foreground_l1, hdr_srgb
-from .model import MAX_SHARPNESS
-from .model_input import MAX_LOG_RADIANCE
-from .prediction import LIGHT_KINDS, Prediction, white_balance
+from ..model.encoder import MAX_SHARPNESS
+from ..model.model_input import MAX_LOG_RADIANCE
+from ..model.prediction import LIGHT_KINDS, Prediction, white_balance
 
 # Tens of steps fit the light to the one view (evaluation uses 30). Each renders the view with gradients, about
 # 0.1 s with SG and 0.6 s with MC at 64 px on 2 cores (after the first, which compiles the renderer): this many
@@ -57,7 +57,7 @@ def refine_light(pred: Prediction, cameras, rgba: torch.Tensor, renderer, steps:
     base = pred.detached()
     meshes = base.meshes()
     free = _free(pred.light_params, kind)
-    log_gain = torch.zeros(rgba.shape[0], requires_grad=True)
+    log_gain = torch.zeros(rgba.shape[0], device=rgba.device, requires_grad=True)
     opt = torch.optim.Adam([*free.values(), log_gain], lr=lr)
     target = hdr_srgb(rgba[..., :3])
     with torch.enable_grad():
