@@ -12,7 +12,7 @@ from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 from dibrpp.mesh import uniform_laplacian
-from pipelines.model.encoder import pixel_normals
+from pipelines.model import pixel_normals
 from pipelines.training.config import ConfigError, TrainConfig
 from pipelines.training.dataset import TrainingViews
 from pipelines.model.pixel_normals import normal_loss
