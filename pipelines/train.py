@@ -111,13 +111,26 @@ def check_trainable_size(ds: MultiViewDataset) -> int:
     return ds.resolution
 
 
-def warn_if_cores_are_busy(threads: int) -> None:
+def other_busy_cores() -> float:
+    """How many cores other processes keep busy now: the kernel's count of runnable tasks less this one, the least
+    of three readings 0.1 s apart (the load average lags: a job that has just ended still counts there)."""
+    try:
+        readings = []
+        for _ in range(3):
+            readings.append(int(Path("/proc/loadavg").read_text().split()[3].split("/")[0]) - 1)
+            time.sleep(0.1)
+        return float(max(0, min(readings)))
+    except (OSError, ValueError, IndexError):
+        return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+
+
+def warn_if_cores_are_busy(threads: int, busy: float | None = None) -> None:
     """One line where other processes keep a core busy: torch's threads then wait on each other at every step, and a
     step at 2 threads on 2 cores was measured 6-20x slower (0.45 s -> 3-9 s)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    busy = os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
+    busy = other_busy_cores() if busy is None else busy
     if threads > 1 and busy >= 1.0 and busy + threads > cores + 0.5:
-        print(f"warning: other processes keep {busy:.1f} of {cores} cores busy; at {threads} threads each step may be "
+        print(f"warning: other processes keep {busy:.0f} of {cores} cores busy; at {threads} threads each step may be "
               "several times slower: pass --threads 1, or wait for them", file=sys.stderr)
 
 

@@ -648,11 +648,10 @@ def test_a_config_in_which_no_loss_can_train_the_model_is_refused():
 def test_a_run_warns_when_other_processes_keep_the_cores_busy(monkeypatch, capsys):
     from pipelines import train as train_module
 
-    monkeypatch.setattr(train_module.os, "getloadavg", lambda: (1.8, 1.5, 1.0))
     monkeypatch.setattr(train_module.os, "sched_getaffinity", lambda _: {0, 1})
-    train_module.warn_if_cores_are_busy(2)
+    train_module.warn_if_cores_are_busy(2, busy=1.0)
     assert "pass --threads 1" in capsys.readouterr().err
-    train_module.warn_if_cores_are_busy(1)
-    monkeypatch.setattr(train_module.os, "getloadavg", lambda: (0.1, 0.1, 0.1))
-    train_module.warn_if_cores_are_busy(2)
+    train_module.warn_if_cores_are_busy(1, busy=1.0)  # one thread: nothing to wait on
+    train_module.warn_if_cores_are_busy(2, busy=0.0)
     assert capsys.readouterr().err == ""
+    assert 0.0 <= train_module.other_busy_cores()
