@@ -46,7 +46,7 @@ from .evaluation import metrics
 from .model.light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
 from .model.prediction import LIGHT_KINDS, white_balance
 from .model.model_input import clip_input, encoder_input, input_radiance
-from .training.runs import load_run, run_folder
+from .training.runs import check_image_size, load_run, run_folder
 
 SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
 
@@ -157,6 +157,7 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
     if split == "all" and Path(dataset).resolve() == Path(config.dataset).resolve():
         raise DataError(f"{run} trained on {dataset}: --split all would count the samples it trained on; use --split test")
     ds = MultiViewDataset(dataset, split=split, views_per_item=1)
+    check_image_size(run, model.config.image_size, ds)
     views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
     errors, lifts, shares, probes, maps, elevations, normals = {}, {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
@@ -246,7 +247,9 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
             row.append(f"{v.nanmedian():.1f}° ({int((~v.isnan()).sum())} views)")
     for k, v in errors.items():
         if not len(v):
-            raise DataError(f"{run}: no {split} view of {dataset} has a dominant light (a sun, a lamp) to place")
+            views = "views" if split == "all" else f"{split} views"
+            raise DataError(f"{run}: none of the {views} of {dataset} has a dominant light (a sun, a lamp) to place; "
+                            "give a set lit by suns with --dataset DIR --split all (e.g. make data-metallic-sunny)")
         lift = f"{lifts[k].median():+.1f}" if k in lifts else ""  # the consensus rows are not per view
         rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
                      f"{100 * (v <= 45).float().mean():.0f} %", lift])

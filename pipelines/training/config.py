@@ -78,10 +78,10 @@ class TrainConfig:
                               "in evaluation an image-space network's fitted to the GT mesh's in each training view "
                               "(pixels: 3D supervision the paper does not use; training reads the surface's)",
                               ("surface", "pixels"))
-    supervision: str = _opt("", "diagnostic: ground truth the run is told: the GT env map (light-map), its rough-metal "
+    supervision: str = _opt("none", "diagnostic: ground truth the run is told: the GT env map (light-map), its rough-metal "
                             "probe (light-probe), each sunny map's sun direction for the probe head's sun (sun), or "
                             "the GT mesh's normals in the input view (shape)",
-                            ("", "light-map", "light-probe", "sun", "shape"))
+                            ("none", "light-map", "light-probe", "sun", "shape"))
     # device
     device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
                        ("cpu", "cuda"))
@@ -111,7 +111,7 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be >= {minimum}, got {value!r}")
             if above is not None and value <= above:
                 raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
-        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("", "shape"):
+        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")
         if self.probe_normals == "pixels" and not self.has_probe_head():

@@ -98,7 +98,7 @@ def earlier_train_config(saved: dict, trained_light_head: str | None) -> dict:
     light, shape = values.pop("light_supervision", ""), values.pop("shape_supervision", False)
     if light and shape:
         raise _refuse("the run was told both the GT light and the GT normals")
-    values["supervision"] = {"map": "light-map", "probe": "light-probe", "sun": "sun"}.get(light, "shape" if shape else "")
+    values["supervision"] = {"map": "light-map", "probe": "light-probe", "sun": "sun"}.get(light, "shape" if shape else "none")
     variant = values.get("variant", "")
     if variant == "probe-light":  # the default model, named
         values["variant"] = ""

@@ -14,9 +14,7 @@ import pytest
 from PIL import Image
 
 from dibrpp.io import read_image, write_exr
-from pipelines import evaluate
-from pipelines import predict
-from pipelines import train
+from pipelines import diagnose_light, evaluate, predict, train
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -303,3 +301,13 @@ def test_no_checkpoint_is_unpickled_with_arbitrary_code():
     offenders = [name for name in listed if name.endswith((".py", ".md", ".txt", ".cfg", ".toml", ".ipynb"))
                  and (REPO / name).is_file() and pattern.search((REPO / name).read_text(errors="replace"))]
     assert not offenders, f"torch.load without weights_only runs pickled code from a file: {offenders}"
+
+
+def test_diagnose_light_on_a_set_of_another_image_size_is_refused_naming_both(run, tiny_glossy, tmp_path, capsys):
+    other = Path(shutil.copytree(tiny_glossy, tmp_path / "glossy-48"))
+    manifest = json.loads((other / "manifest.json").read_text())
+    manifest["config"]["resolution"] = 48
+    (other / "manifest.json").write_text(json.dumps(manifest))
+    code = call(diagnose_light.main, ["--run", str(run), "--dataset", str(other), "--split", "all"])
+    assert_one_error(code, capsys.readouterr().err, "32x32", "48x48")
+
