@@ -61,10 +61,14 @@ def dataset_kind(r: dict) -> str | None:
     return kind if kind in PAPER_KINDS else None
 
 
+PUBLISHED = "published"  # the variant that is the paper's model as published: its rows sit beside the default's
+
+
 def run_key(r: dict) -> tuple:
-    # K only distinguishes SG-lit runs; MC and SH runs key at the default 32
+    # K only distinguishes SG-lit runs; MC and SH runs key at the default 32; the published model's keys end in its name
     lobes = r["lobes"] if r["shading"] in ("sg", "sh-sg") else 32
-    return (dataset_kind(r), r["shading"], lobes, r["seed"])
+    key = (dataset_kind(r), r["shading"], lobes, r["seed"])
+    return key + (PUBLISHED,) if r.get("variant") == PUBLISHED else key
 
 
 RESULT_KEYS = frozenset({"dataset", "shading", "lobes", "seed", "iteration"})  # of pipelines.evaluate's results
@@ -99,11 +103,11 @@ def paper_sets(results: list[dict]) -> dict[str, str]:
 
 
 def paper_results(results: list[dict]) -> dict:
-    """{run_key: result} of the default-model results on the sets the tables show (ablations of the model,
-    pipelines.evaluate's variants, are not paper rows)."""
+    """{run_key: result} of the default model's and the published model's results on the sets the tables show (the
+    other variants, ablations of the model, are not paper rows)."""
     sets = paper_sets(results)
-    return {run_key(r): r for r in results
-            if not r.get("variant") and dataset_kind(r) and sets[dataset_kind(r)] == r["dataset"]}
+    return {run_key(r): r for r in results if r.get("variant", "") in ("", PUBLISHED) and dataset_kind(r)
+            and dataset_kind(r) in sets and sets[dataset_kind(r)] == r["dataset"]}
 
 
 def format_value(v, spec: str = ".3f") -> str:
@@ -136,7 +140,7 @@ class _Builder:
     # constant map, a spread over seeds), so it alone does not make a table worth showing
     def row(self, label: str, key: tuple, target: str) -> dict:
         r = self.keyed.get(key)
-        return dict(label=label, ours=None if r is None else tuple(r.get(c) for c in COLUMNS), paper=PAPER.get(key),
+        return dict(label=label, ours=None if r is None else tuple(r.get(c) for c in COLUMNS), paper=PAPER.get(key[:4]),
                     own=None if r is None else tuple(r.get(c) for c in OWN_COLUMNS), reference=False,
                     note="" if r else f"missing: {self.hint(key[0], target)}",
                     iterations=None if r is None else r["iteration"])
@@ -163,11 +167,11 @@ def build_tables(results: list[dict]) -> tuple[dict[str, dict], str]:
     for ds in ("metallic", "glossy"):
         if ds in b.sets:
             rows += [b.row(f"{b.set_label(ds)} / {METHOD_NAMES[m]}", (ds, m, 32, 0), f"make train-{ds}")
-                     for m in ("mc", "sg", "sh")] + b.constant_row(ds)
+                     for m in ("mc", "sg", "sh")] + published_rows(b, ds) + b.constant_row(ds)
     t["table1"] = dict(title=f"Table 1: metallic and glossy surfaces ({split}; lower is better)", rows=rows)
     t["tableC"] = dict(title=f"Table C: {b.set_label('diffuse')} surfaces ({split})", rows=[
         b.row(METHOD_NAMES[m], ("diffuse", m, 32, 0), "make train-diffuse") for m in ("mc", "sg", "sh")]
-        + b.constant_row("diffuse"))
+        + published_rows(b, "diffuse") + b.constant_row("diffuse"))
     glossy = b.set_label("glossy")
     t["tableD"] = dict(title=f"Table D: shading methods on {glossy} surfaces ({split})", rows=[
         b.row(METHOD_NAMES[m], ("glossy", m, 32, 0), target) for m, target in
@@ -177,13 +181,22 @@ def build_tables(results: list[dict]) -> tuple[dict[str, dict], str]:
         b.row(f"K = {k}", ("glossy", "sg", k, 0), "make train-glossy" if k == 32 else "make train-ablations")
         for k in (4, 8, 16, 32)] + b.constant_row("glossy"))
     seeds = [b.row(f"DIB-R++ SG, seed {s}", ("glossy", "sg", 32, s), "make train-glossy") for s in (0, 1, 2)]
+    published = [b.row(f"DIB-R++ SG as published, seed {s}", ("glossy", "sg", 32, s, PUBLISHED),
+                       "make train-published") for s in (0, 1, 2)]
     t["tableF"] = dict(title=f"Table F: training variance over three seeds ({glossy}, SG; {split})",
-                       rows=seeds + _spread(seeds) + b.constant_row("glossy"))
+                       rows=seeds + _spread(seeds) + published + _spread(published, "as published: ")
+                       + b.constant_row("glossy"))
     shown = {name: tab for name, tab in t.items() if any(r["ours"] for r in tab["rows"] if not r["reference"])}
     for tab in shown.values():
         tab["notes"], tab["claims"] = [PAIRING_NOTE], []
     _claims(shown, b.keyed)
     return shown, coverage_note(results, b.sets, [name for name in t if name not in shown])
+
+
+def published_rows(b: "_Builder", kind: str) -> list[dict]:
+    """The published model's SG and MC rows of a set (``--variant published``), beside the default's."""
+    return [b.row(f"{b.set_label(kind)} / {METHOD_NAMES[m]} as published", (kind, m, 32, 0, PUBLISHED),
+                  "make train-published") for m in ("mc", "sg")]
 
 
 def coverage_note(results: list[dict], sets: dict[str, str], left_out: list[str]) -> str:
@@ -211,7 +224,7 @@ def coverage_note(results: list[dict], sets: dict[str, str], left_out: list[str]
 PAPER_SPREAD = {"mean": (0.025, 0.060, 0.091, 0.142), "variance": None, "std. dev.": (0.000, 0.002, 0.000, 0.001)}
 
 
-def _spread(seeds: list[dict]) -> list[dict]:
+def _spread(seeds: list[dict], prefix: str = "") -> list[dict]:
     got = [r["ours"] for r in seeds if r["ours"] is not None]
 
     def stat(fn, vals):
@@ -220,7 +233,7 @@ def _spread(seeds: list[dict]) -> list[dict]:
         columns = [[v[i] for v in vals] for i in range(len(COLUMNS))]
         return tuple(fn(c) if None not in c else None for c in columns)  # a column an older result lacks: none
 
-    return [dict(label=name, ours=stat(fn, got), paper=PAPER_SPREAD[name], own=None, reference=True,
+    return [dict(label=prefix + name, ours=stat(fn, got), paper=PAPER_SPREAD[name], own=None, reference=True,
                  note="" if len(got) == 3 else f"over {len(got)} of 3 seeds", iterations=None)
             for name, fn in (("mean", statistics.mean), ("variance", statistics.variance), ("std. dev.", statistics.stdev))]
 
