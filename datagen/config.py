@@ -22,7 +22,7 @@ PRESETS = {
 DATASET_DEFAULTS = {"diffuse": dict(spp=64, denoise=True)}
 
 # The model's encoder downsamples images by 16, so training takes a side that is a multiple of 16
-# (pipelines.config.TrainConfig.image_size); a dataset at another side could not be trained on.
+# (pipelines.training.config.TrainConfig.image_size); a dataset at another side could not be trained on.
 RESOLUTION_MULTIPLE = 16
 
 _POSITIVE = ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "texture_size",

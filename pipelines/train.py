@@ -3,7 +3,7 @@
     python -m pipelines.train --dataset data/glossy --shading sg --seed 0 --out runs/glossy/sg-seed0
     python -m pipelines.train --variant published ...    # a named variant (--list-variants)
     python -m pipelines.train --out runs/glossy/sg-seed0 --resume   # continue a run with its own settings
-    torchrun --nproc_per_node 2 -m pipelines.train ...        # data-parallel (gloo on CPU, NCCL on GPU)
+    torchrun --nproc_per_node 2 -m pipelines.train ...        # data-parallel on the CPU (gloo)
 
 Each iteration draws ``batch_objects`` (sample, view pair) items, predicts shape/texture/material/light
 from both views and renders every prediction in both views with the light of the view it is rendered
