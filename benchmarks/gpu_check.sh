@@ -5,7 +5,9 @@
 #  1. the CUDA tests (the renderer's CPU/CUDA parity, MC replay, one training step on either device);
 #  2. the paper preset's training step at 256 x 256, batch 16, SG and MC (benchmarks.train_step);
 #  3. SG trained with the paper preset for about TRAIN_SECONDS (default 180) of steps at the measured rate, its
-#     cosine tail over that length, then evaluated on the GPU, and one image predicted on the GPU.
+#     cosine tail over that length, then evaluated (EVAL_DEVICE, default cpu: on an H200 `--device cuda` had not
+#     finished its first batch after ~100 s, its renderers compiling for each batch shape) and one image predicted
+#     on the GPU.
 # The 200k-iteration recipe's time on this GPU is the step time times 200 000 (printed at the end).
 set -euo pipefail
 data=${1:?usage: benchmarks/gpu_check.sh DATASET OUT [TRAIN_SECONDS]}
@@ -33,9 +35,9 @@ $py -m pipelines.train --preset paper --dataset "$data" --shading sg --device cu
   --checkpoint-every "$iterations" --log-every 10 --out "$out/run" --no-progress
 echo "trained in $(( $(date +%s) - start )) s"
 
-echo "== evaluation and prediction on the GPU"
+echo "== evaluation (${EVAL_DEVICE:-cpu}) and prediction on the GPU"
 start=$(date +%s)
-$py -m pipelines.evaluate --runs "$out/run" --dataset "$data" --device cuda --out "$out/eval"
+$py -m pipelines.evaluate --runs "$out/run" --dataset "$data" --device "${EVAL_DEVICE:-cpu}" --out "$out/eval"
 echo "evaluated in $(( $(date +%s) - start )) s"
 image=$(ls "$data"/samples/*/view_00.exr | head -1)
 $py -m pipelines.predict --checkpoint "$out/run" --image "$image" --device cuda --out "$out/predict"
