@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution data eval train-ablations clean help
+.PHONY: setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~5.5 h)"
@@ -41,6 +41,7 @@ help:
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
 	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~35 min)"
+	@echo "make study-scale      the default SG model along resolution, length and data: curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; every point ~30 h on 2 cores)"
 	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1 h)"
 
 setup: system-libs $(VENV)/.installed
@@ -193,6 +194,16 @@ study-resolution: $(VENV)/.installed
 	  $(PY) -m pipelines.evaluate --runs $$run --dataset $$sunny --split all --out results/eval-res$$r; \
 	  $(PY) -m pipelines.diagnose_light --run $$run --dataset $$sunny --split all > results/eval-res$$r/diagnose_light.txt; \
 	done
+
+# The default SG model along input resolution (32, 64, 128; 256 on a GPU), training length (750 to 24k iterations)
+# and training data (10 to 400 cars, 32 or 160 maps), everything else at the glossy set's base point
+# (pipelines/scale_study.py, docs/scale.md): each point's set rendered if missing, the run trained, evaluated on the
+# test and train splits, then the curves and light rows (results/scale/). Resumable at every step.
+SCALE_POINTS ?=
+study-scale: $(VENV)/.installed
+	$(PY) -m pipelines.scale_study run --data $(DATA) --runs $(RUNS) $(if $(SCALE_POINTS),--points $(SCALE_POINTS)) \
+	  $(if $(TRAIN_ARGS),--train-args='$(TRAIN_ARGS)')
+	$(PY) -m pipelines.scale_study report --data $(DATA) --runs $(RUNS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

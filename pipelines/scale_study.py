@@ -1,0 +1,267 @@
+"""What scale buys: the default SG model along input resolution, training length and training cars (and env maps),
+everything else at the base point (the glossy set at 64 x 64, 1500 iterations, its 80 training cars under its 32
+training maps). ``make study-scale``; details and results: docs/scale.md.
+
+    python -m pipelines.scale_study list                      # the points, and which are done
+    python -m pipelines.scale_study run [--points res128,its3000,...]
+    python -m pipelines.scale_study report                    # curves and light rows into --out
+
+Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pipelines.evaluate`` on the test
+split and on the train split (every 12th view: as many views as the test split), each in its own process (an
+entry point does not import another); a point's dataset is rendered by ``datagen`` when missing. Every step
+resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
+run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
+run's end. Points marked GPU are skipped where CUDA is not available.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from datagen.reader import MultiViewDataset, collate
+from dibrpp.display import tonemap_envmap
+from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure
+
+from .evaluation.summary import CONSTANT_REFERENCES
+from .model.model_input import encoder_input
+from .training.runs import is_run, load_run
+
+BASE = {"resolution": 64, "iterations": 1500, "cars": 80, "maps": 32}
+AXIS_LABELS = {"resolution": "input resolution (pixels a side)", "iterations": "training iterations",
+               "cars": "training cars", "maps": "training env maps"}
+TRAIN_SPLIT_STRIDE = 12  # 2 views a training sample: 320 views, as many as the test split's at stride 3
+LIGHT_ROW_VIEWS = 4  # test views shown in each axis's light row (evaluate's figure views)
+
+
+@dataclass(frozen=True)
+class Point:
+    name: str
+    axis: str  # "base" is on every axis
+    value: int
+    dataset: str  # folder under --data
+    datagen: tuple[str, ...]  # how that dataset is rendered
+    run: str  # folder under --runs
+    train: tuple[str, ...] = ()  # flags beside the defaults
+    gpu: bool = False
+
+
+GLOSSY = ("--dataset", "glossy")
+POINTS = [
+    Point("base", "base", 0, "glossy", GLOSSY, "glossy/sg-seed0"),
+    *(Point(f"res{r}", "resolution", r, f"glossy-{r}", (*GLOSSY, "--resolution", str(r)), f"scale/res{r}",
+            gpu=r > 128) for r in (32, 128, 256)),
+    *(Point(f"its{n}", "iterations", n, "glossy", GLOSSY, f"scale/its{n}", ("--iterations", str(n)))
+      for n in (750, 3000, 6000, 12000, 24000)),
+    *(Point(f"cars{n}", "cars", n, "glossy", GLOSSY, f"scale/cars{n}", ("--train-objects", str(n)))
+      for n in (10, 20, 40)),
+    # 500 objects: 400 training cars; 200 env maps: 160 training maps (the splits are 4:1)
+    Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "scale/cars400"),
+    Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "glossy-maps200/sg-seed0"),
+]
+BY_NAME = {p.name: p for p in POINTS}
+
+
+def on_axis(axis: str) -> list[Point]:
+    """The axis's points, the base point among them, by value."""
+    points = [p for p in POINTS if p.axis == axis] + [BY_NAME["base"]]
+    return sorted(points, key=lambda p: p.value or BASE[axis])
+
+
+def value(p: Point, axis: str) -> int:
+    return p.value if p.axis == axis else BASE[axis]
+
+
+def sh(*cmd: str) -> None:
+    """Run a CLI of this project in its own process; stop the study where it fails."""
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run([sys.executable, *cmd], check=True)
+
+
+def run_point(p: Point, data: Path, runs: Path, out: Path, train_args: tuple[str, ...] = ()) -> None:
+    """Render (if missing), train (or resume) and evaluate one point on both splits; ``train_args``: flags
+    for every new run (a resumed run keeps its own)."""
+    if p.gpu and not torch.cuda.is_available():
+        print(f"== {p.name}: needs a GPU; skipped")
+        return
+    print(f"== {p.name}: {p.axis} {p.value or ''}", flush=True)
+    dataset, run = data / p.dataset, runs / p.run
+    if not (dataset / "manifest.json").exists():
+        sh("-m", "datagen", *p.datagen, "--out", str(dataset), "--quiet")
+    device = ("--device", "cuda") if p.gpu else ()
+    flags = () if is_run(run) else ("--dataset", str(dataset), "--seed", "0", *train_args, *p.train, *device)
+    sh("-m", "pipelines.train", "--out", str(run), "--resume", "--no-progress", *flags)
+    sh("-m", "pipelines.evaluate", "--runs", str(run), "--out", str(out / "test"), *device)
+    sh("-m", "pipelines.evaluate", "--runs", str(run), "--out", str(out / "train"), "--split", "train",
+       "--view-stride", str(TRAIN_SPLIT_STRIDE), *device)
+
+
+def result(out: Path, split: str, run: Path) -> dict | None:
+    """The evaluation of ``run`` in ``out/split`` (evaluate names its JSON after the run's folder)."""
+    for path in sorted((out / split).glob("*/*.json")):
+        r = json.loads(path.read_text())
+        if isinstance(r, dict) and Path(r.get("run", "")).resolve() == run.resolve():
+            return r
+    return None
+
+
+def train_minutes(run: Path) -> float | None:
+    path = run / "summary.json"
+    return json.loads(path.read_text())["seconds"] / 60 if path.exists() else None
+
+
+# what each axis's figure plots: (key, title); a light metric's constant-map score is drawn beside it
+CURVES = [("image_whole", "image L1, whole image"), ("image_foreground", "image L1, foreground"),
+          ("iou", "2D IoU loss"), ("texture", "texture 1-NCC"), ("normal_deg", "normal error (deg)"),
+          ("light_ldr", "light 1-NCC, LDR maps"), ("light_hdr", "light 1-NCC, HDR maps"),
+          ("probe_diffuse", "diffuse probe si-RMSE"), ("probe_metal", "rough-metal probe si-RMSE"),
+          ("probe_mirror", "mirror probe si-RMSE"), ("direction_deg", "sun direction, median (deg)"),
+          ("minutes", "training wall time (min, 2 cores)")]
+
+
+def axis_rows(axis: str, runs: Path, out: Path) -> list[dict]:
+    """One row per evaluated point of ``axis``: its value, both splits' metrics, its training time."""
+    rows = []
+    for p in on_axis(axis):
+        test, train = result(out, "test", runs / p.run), result(out, "train", runs / p.run)
+        if test is None:
+            continue
+        rows.append({"point": p.name, "value": value(p, axis), "run": runs / p.run, "test": test, "train": train,
+                     "minutes": train_minutes(runs / p.run)})
+    return rows
+
+
+def plot_axis(axis: str, rows: list[dict], path: Path) -> None:
+    plt = pyplot()
+    fig, axes = plt.subplots(3, 4, figsize=(15, 9.5))
+    xs = [r["value"] for r in rows]
+    for ax, (key, title) in zip(axes.flat, CURVES):
+        if key == "minutes":
+            ax.plot(xs, [r["minutes"] or float("nan") for r in rows], "o-", color="k")
+        else:
+            ax.plot(xs, [r["test"][key] for r in rows], "o-", label="test split")
+            ax.plot(xs, [r["train"][key] if r["train"] else float("nan") for r in rows], "x--", label="train split")
+            if f"{key}_constant" in CONSTANT_REFERENCES:
+                ax.plot(xs, [r["test"][f"{key}_constant"] for r in rows], ":", color="grey", label="constant map (test)")
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(xs, [str(x) for x in xs])
+        ax.minorticks_off()
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+    axes.flat[5].legend(fontsize=8)
+    fig.supxlabel(AXIS_LABELS[axis])
+    fig.suptitle(f"The default SG model along {AXIS_LABELS[axis]} (glossy; base: 64², 1500 its, 80 cars, 32 maps)")
+    save_figure(fig, path, dpi=90)
+
+
+@torch.no_grad()
+def predicted_lights(run: Path) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """The run's predicted light and the GT map (tone-mapped equirects) in evaluate's figure views of its test
+    split: different samples, the same at every point of an axis (the sets share their cars, maps and splits)."""
+    loaded = load_run(run)
+    ds = MultiViewDataset(loaded.config.dataset, split="test", views_per_item=1)
+    shown = list(range(0, len(ds), max(1, len(ds) // LIGHT_ROW_VIEWS)))[:LIGHT_ROW_VIEWS]
+    b = collate([ds[i] for i in shown])
+    pred = loaded.model(encoder_input(b["image"][:, 0]), b["cameras"])
+    env = b["envmap"]
+    maps = pred.light(b["cameras"].world_to_camera).to_envmap(env.shape[1], env.shape[2]).image
+    return [tonemap_envmap(m) for m in maps], [tonemap_envmap(m) for m in env]
+
+
+def plot_light_row(axis: str, rows: list[dict], path: Path) -> None:
+    """The GT map and each point's predicted light, one test view per row."""
+    lights = [predicted_lights(r["run"]) for r in rows]
+    gt = lights[0][1]
+    plt = pyplot()
+    fig, axes = plt.subplots(len(gt), len(rows) + 1, figsize=(2.6 * (len(rows) + 1), 1.45 * len(gt)), squeeze=False)
+    for i in range(len(gt)):
+        for j, img in enumerate([gt[i], *(pred[i] for pred, _ in lights)]):
+            ax = axes[i, j]
+            ax.imshow(img.clamp(0, 1).numpy())
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title("GT" if j == 0 else f"{rows[j - 1]['value']}", fontsize=9)
+    fig.suptitle(f"Predicted light along {AXIS_LABELS[axis]} (test views; tone-mapped equirect, up at the top)",
+                 fontsize=10)
+    save_figure(fig, path, dpi=100)
+
+
+TABLE_KEYS = ("image_whole", "iou", "texture", "light_ldr", "probe_metal", "probe_mirror", "direction_deg")
+
+
+def table(axis: str, rows: list[dict]) -> str:
+    """Test metrics per point; each light metric as its ratio to the constant map's where it has one."""
+    head = [AXIS_LABELS[axis], *TABLE_KEYS, "train image L1 (whole)", "train light LDR", "minutes"]
+    body = []
+    for r in rows:
+        t = r["test"]
+        cells = [format_number(t[k], ".3g") + (f" ({t[k] / t[k + '_constant']:.2f}×)" if k + "_constant" in t else "")
+                 for k in TABLE_KEYS]
+        train = r["train"] or {}
+        body.append([str(r["value"]), *cells, format_number(train.get("image_whole"), ".3g"),
+                     format_number(train.get("light_ldr"), ".3g"), format_number(r["minutes"], ".1f")])
+    return markdown_table(head, body)
+
+
+def report(runs: Path, out: Path) -> None:
+    text = ["# Scale study: the default SG model along each axis", "",
+            "Test split (unseen cars under unseen maps) unless marked train; (×) is the ratio to a constant map's score.", ""]
+    for axis in BASE:
+        rows = axis_rows(axis, runs, out)
+        if len(rows) < 2:
+            print(f"{axis}: {len(rows)} point(s) evaluated; no curve")
+            continue
+        plot_axis(axis, rows, out / f"scale_{axis}.png")
+        plot_light_row(axis, rows, out / f"scale_{axis}_light.png")
+        text += [f"## {AXIS_LABELS[axis]}", "", table(axis, rows), ""]
+    (out / "scale.md").write_text("\n".join(text))
+    print(f"wrote {out}/scale.md and the figures beside it")
+
+
+def list_points(runs: Path, out: Path) -> None:
+    for p in POINTS:
+        state = ("evaluated" if result(out, "test", runs / p.run) and result(out, "train", runs / p.run) else
+                 "trained" if (runs / p.run / "summary.json").exists() else "started" if is_run(runs / p.run) else "-")
+        print(f"{p.name:9s} {p.axis:10s} {p.dataset:15s} {p.run:26s} {'GPU ' if p.gpu else ''}{state}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m pipelines.scale_study", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("command", choices=("list", "run", "report"))
+    ap.add_argument("--points", help="comma-separated point names, in the order to run them (default: every point "
+                    "the machine can run, in the listed order)")
+    ap.add_argument("--data", default="data", type=Path, help="datasets folder (default: data)")
+    ap.add_argument("--runs", default="runs", type=Path, help="runs folder (default: runs)")
+    ap.add_argument("--out", default="results/scale", type=Path, help="results folder (default: results/scale)")
+    ap.add_argument("--train-args", default="", help="flags for every new run, e.g. --train-args='--threads 1' (runs "
+                    "that repeat bit for bit)")
+    args = ap.parse_args(argv)
+    names = args.points.split(",") if args.points else [p.name for p in POINTS]
+    unknown = [n for n in names if n not in BY_NAME]
+    if unknown:
+        print(f"error: no point {', '.join(unknown)}; the points: {', '.join(BY_NAME)}", file=sys.stderr)
+        return 2
+    if args.command == "list":
+        list_points(args.runs, args.out)
+    elif args.command == "report":
+        report(args.runs, args.out)
+    else:
+        try:
+            for name in names:
+                run_point(BY_NAME[name], args.data, args.runs, args.out, tuple(args.train_args.split()))
+        except subprocess.CalledProcessError as e:
+            print(f"error: {' '.join(e.cmd[1:])} failed (exit {e.returncode}); fix it and rerun to resume",
+                  file=sys.stderr)
+            return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
