@@ -3,8 +3,9 @@
 #   benchmarks/gpu_check.sh DATASET OUT [TRAIN_SECONDS]
 # DATASET: a set rendered at 256 x 256 (python -m datagen --preset paper ...); OUT: where the results go.
 #  1. the CUDA tests (the renderer's CPU/CUDA parity, MC replay, one training step on either device);
-#  2. the paper preset's training step at 256 x 256, batch 16, SG and MC (benchmarks.train_step);
-#  3. SG trained with the paper preset for about TRAIN_SECONDS (default 180) of steps at the measured rate, its
+#  2. Cycles on the GPU: 2 objects at the paper preset (256 x 256, 256 spp) rendered with --cycles-device gpu;
+#  3. the paper preset's training step at 256 x 256, batch 16, SG and MC (benchmarks.train_step);
+#  4. SG trained with the paper preset for about TRAIN_SECONDS (default 180) of steps at the measured rate, its
 #     cosine tail over that length, then evaluated (EVAL_DEVICE, default cpu: on an H200 `--device cuda` had not
 #     finished its first batch after ~100 s, its renderers compiling for each batch shape) and one image predicted
 #     on the GPU.
@@ -21,6 +22,10 @@ $py -c "import torch; print('torch', torch.__version__, '|', torch.cuda.get_devi
 echo "== CUDA tests"
 $py -m pytest -q -p no:cacheprovider -o addopts="" tests/dibrpp/test_shading.py tests/dibrpp/test_lights.py \
   tests/dibrpp/test_mc_replay.py tests/pipelines/test_train.py -k "cuda" 2>&1 | tail -5
+
+echo "== Cycles on the GPU: 2 objects, paper preset"
+$py -m datagen --dataset glossy --preset paper --num-objects 2 --num-envmaps 4 --envs-per-object 1 --views 8 \
+  --cycles-device gpu --quiet --no-preview --out "$out/data-gpu" | tail -1
 
 echo "== the paper preset's training step (256 x 256, batch 16)"
 $py -m benchmarks.train_step --dataset "$data" --preset paper --device cuda --shading sg mc --iterations 20 \

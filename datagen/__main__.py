@@ -62,6 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of every random choice (shapes, materials, maps, splits, Cycles)")
     p.add_argument("--workers", type=positive_int, default=2, metavar="N",
                    help="worker processes (bpy is not thread-safe)")
+    p.add_argument("--cycles-device", choices=("cpu", "gpu"), default="cpu",
+                   help="where Cycles renders the views: cpu, or gpu (OptiX, CUDA, HIP, Metal or oneAPI, whichever "
+                        "Cycles finds); env maps, shapes and textures are made on the CPU either way, so only the "
+                        "views' noise differs between devices")
     p.add_argument("--recycle", type=positive_int, default=4, metavar="N",
                    help="tasks per worker process before it is replaced")
     p.add_argument("--shard", default="0/1", metavar="I/N", help="i/n: generate only objects with index %% n == i")
@@ -70,6 +74,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "maps) written once every sample is done")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def check_gpu() -> None:
+    """Refuse ``--cycles-device gpu`` before anything is written where Cycles finds no GPU (asked in a worker
+    process, as every render is: the parent does not load bpy)."""
+    from .cycles.settings import gpu_backend
+    from .workers import completed
+
+    if next(completed([(gpu_backend, ())], workers=1, threads=0, recycle=1)) is None:
+        raise ValueError("--cycles-device gpu: Cycles finds no GPU on this machine (OptiX, CUDA, HIP, Metal, "
+                         "oneAPI); render with --cycles-device cpu")
 
 
 def main(argv=None) -> int:
@@ -87,8 +102,11 @@ def main(argv=None) -> int:
                           grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
                           denoise=args.denoise, outdoor_share=args.outdoor_share)
         shard = parse_shard(args.shard)
+        if args.cycles_device == "gpu":
+            check_gpu()
         stats = generate(cfg, args.out, workers=args.workers, shard=shard, recycle=args.recycle,
-                         progress=not args.quiet, preview=not args.no_preview)
+                         progress=not args.quiet, preview=not args.no_preview,
+                         cycles_device=args.cycles_device.upper())
     except (ValueError, DataError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

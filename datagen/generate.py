@@ -52,8 +52,10 @@ from .workers import completed
 
 
 def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1), recycle: int = 4,
-             progress: bool = True, preview: bool = True) -> dict:
-    """Generate (or resume) a dataset into ``out``; returns a timing summary.
+             progress: bool = True, preview: bool = True, cycles_device: str = "CPU") -> dict:
+    """Generate (or resume) a dataset into ``out``; returns a timing summary. ``cycles_device``: where Cycles
+    renders the views ("CPU" or "GPU"); the env maps, shapes and textures are made on the CPU either way, so
+    the assets are the same on any machine and only the views' noise depends on the device.
 
     FolderBusy (a DataError) at once if another run is writing the same shard into ``out``."""
     cfg.validate()
@@ -70,12 +72,12 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
         mine = [o for o in p["objects"] if o["index"] % sn == si]
         _verify_finished_samples(out, mine, cfg)
         threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-        run = dict(workers=workers, threads=threads, recycle=recycle, progress=progress)
+        run = dict(workers=workers, threads=threads, recycle=recycle, progress=progress, device=cycles_device)
         t_start = time.perf_counter()
         stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
         stats["asset_s"] = _make_assets(out, cfg, p, sources, mine, run)
         stats.update(_render_samples(out, cfg, mine, run))
-        stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard))
+        stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard), cycles_device=cycles_device)
         write_json(DatasetLayout(out).timing(si, sn), stats)
         if preview and _all_samples_finished(out, p):
             from .preview import contact_sheet
@@ -142,7 +144,7 @@ def _render_samples(out: Path, cfg: Config, objects: list, run: dict) -> dict:
     stats = dict(cycles_s=0.0, sample_s=0.0, rendered_views=0, skipped_samples=0)
     with _progress_bar(run["progress"], total=len(tasks) * cfg.views, desc=f"{cfg.dataset}: views",
                        unit="view") as bar:
-        for r in completed(tasks, run["workers"], run["threads"], run["recycle"]):
+        for r in completed(tasks, run["workers"], run["threads"], run["recycle"], run["device"]):
             if r["skipped"]:
                 stats["skipped_samples"] += 1
             else:

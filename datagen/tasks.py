@@ -13,7 +13,7 @@ from .config import Config
 from .layout import DEFAULT_CAMERA, DatasetLayout
 from .plan import ENV, OBJ, azimuths, render_seed, seed_for
 from .records import write_json
-from .workers import cycles_threads, exit_if_orphaned
+from .workers import cycles_device, cycles_threads, exit_if_orphaned
 
 
 def _task_envmap(out: str, i: int, make) -> dict:
@@ -132,7 +132,8 @@ def _sample_scene(layout: DatasetLayout, cfg: Config, i: int, env: int, info: di
         verts, faces, uvs, face_uvs = m["verts"], m["faces"], m["uvs"], m["face_uvs"]
     material = cycles.PrincipledMaterial.from_dict(info["material"], texture=layout.texture(i))
     settings = cycles.RenderSettings(resolution=cfg.resolution, spp=cfg.spp, max_bounces=cfg.max_bounces,
-                                     denoise=bool(cfg.denoise), albedo_aov=True, threads=cycles_threads())
+                                     denoise=bool(cfg.denoise), albedo_aov=True, threads=cycles_threads(),
+                                     device=cycles_device())
     return cycles.build_scene(verts, faces, envmap=layout.envmap(env), settings=settings, material=material,
                               uvs=uvs, face_uvs=face_uvs)
 

@@ -10,6 +10,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 
 _THREADS = 0  # Cycles threads per worker (0: every core)
+_DEVICE = "CPU"  # where Cycles renders a sample's views: "CPU" or "GPU"
 _PARENT_PID: int | None = None
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -20,10 +21,15 @@ def cycles_threads() -> int:
     return _THREADS
 
 
-def init_worker(threads: int, parent_pid: int | None = None) -> None:
+def cycles_device() -> str:
+    """Where this worker's Cycles renders the views, as the run chose it."""
+    return _DEVICE
+
+
+def init_worker(threads: int, parent_pid: int | None = None, device: str = "CPU") -> None:
     """Set up a fresh worker: die with the parent, quiet stdout, ``bpy`` imported once."""
-    global _THREADS, _PARENT_PID
-    _THREADS = threads
+    global _THREADS, _PARENT_PID, _DEVICE
+    _THREADS, _DEVICE = threads, device
     _PARENT_PID = os.getppid() if parent_pid is None else parent_pid
     _die_with_parent()
     # Blender prints a line per render ("Saved: ...") on stdout: keep the parent's progress bar clean.
@@ -54,8 +60,9 @@ def exit_if_orphaned() -> None:
         os._exit(1)
 
 
-def completed(tasks, workers: int, threads: int, recycle: int):
+def completed(tasks, workers: int, threads: int, recycle: int, device: str = "CPU"):
     """Results of ``tasks`` [(fn, args)] as they finish; a failed task stops the run with its error.
+    ``device``: where the workers' Cycles renders the views (:func:`cycles_device`).
 
     Workers are recycled (bpy leaks memory) by running the tasks in batches, each in a fresh pool. The
     pool's own ``max_tasks_per_child`` deadlocks on Python 3.11 when a worker retires, so it is not used.
@@ -64,7 +71,7 @@ def completed(tasks, workers: int, threads: int, recycle: int):
     batch = max(1, workers) * max(1, recycle)
     for start in range(0, len(tasks), batch):
         with ProcessPoolExecutor(max(1, workers), mp_context=ctx, initializer=init_worker,
-                                 initargs=(threads, os.getpid())) as pool:
+                                 initargs=(threads, os.getpid(), device)) as pool:
             futures = [pool.submit(fn, *a) for fn, a in tasks[start:start + batch]]
             try:
                 yield from _results(futures)

@@ -26,6 +26,7 @@ import torch
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.display import tonemap_envmap
+from dibrpp.io import DataError
 from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure
 
 from .evaluation.summary import CONSTANT_REFERENCES
@@ -83,6 +84,15 @@ def sh(*cmd: str) -> None:
     subprocess.run([sys.executable, *cmd], check=True)
 
 
+def complete(dataset: Path) -> bool:
+    """Whether every sample of ``dataset`` is on disk (datagen writes the manifest first, the samples after)."""
+    try:
+        MultiViewDataset(dataset, split="all")
+    except (DataError, OSError):
+        return False
+    return True
+
+
 def run_point(p: Point, data: Path, runs: Path, out: Path, train_args: tuple[str, ...] = ()) -> None:
     """Render (if missing), train (or resume) and evaluate one point on both splits; ``train_args``: flags
     for every new run (a resumed run keeps its own)."""
@@ -91,7 +101,7 @@ def run_point(p: Point, data: Path, runs: Path, out: Path, train_args: tuple[str
         return
     print(f"== {p.name}: {p.axis} {p.value or ''}", flush=True)
     dataset, run = data / p.dataset, runs / p.run
-    if not (dataset / "manifest.json").exists():
+    if not complete(dataset):
         sh("-m", "datagen", *p.datagen, "--out", str(dataset), "--quiet")
     device = ("--device", "cuda") if p.gpu else ()
     flags = () if is_run(run) else ("--dataset", str(dataset), "--seed", "0", *train_args, *p.train, *device)

@@ -141,7 +141,9 @@ def _configure_colour_and_output(scene) -> None:
     im.exr_codec = "NONE"
 
 
-def _enable_gpu():
+def gpu_backend() -> str | None:
+    """The first GPU backend Cycles finds devices of (OptiX, CUDA, HIP, Metal, oneAPI), with its devices
+    enabled; None where there is none."""
     bpy = bpy_module()
     prefs = bpy.context.preferences.addons["cycles"].preferences
     for backend in ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI"):
@@ -154,5 +156,10 @@ def _enable_gpu():
         if gpus:
             for d in prefs.devices:
                 d.use = d.type == backend
-            return
-    raise RuntimeError("device='GPU' but Cycles found no GPU backend; use device='CPU'")
+            return backend
+    return None
+
+
+def _enable_gpu():
+    if gpu_backend() is None:
+        raise RuntimeError("device='GPU' but Cycles found no GPU backend; use device='CPU'")

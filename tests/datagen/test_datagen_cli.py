@@ -29,3 +29,14 @@ def test_every_flag_says_what_it_does():
               if a.option_strings and a.help is None and a.dest != "help"]
     assert not silent, f"flags without a description in --help: {silent}"
     assert "preview.png" in parser.format_help()
+
+
+def test_a_gpu_render_is_refused_by_name_where_cycles_finds_no_gpu(tmp_path, capsys):
+    pytest.importorskip("bpy")
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    out = tmp_path / "set"
+    assert cli.main(["--dataset", "glossy", "--out", str(out), "--num-objects", "2", "--cycles-device", "gpu"]) == 2
+    assert "--cycles-device gpu: Cycles finds no GPU" in capsys.readouterr().err
+    assert not out.exists()
