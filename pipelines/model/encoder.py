@@ -73,12 +73,19 @@ class ModelConfig:
     predict_metallic: bool = False
     roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
     width: int = 32  # channels of the first conv layer
+    # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
+    # a fixed side, one more downsampling block per halving (the fully connected layer's size then stays the same)
+    global_grid: int = 0
 
     def validate(self) -> None:
         if self.shading not in LIGHT_KINDS:
             raise ValueError(f"unknown shading {self.shading!r}; choose from {sorted(LIGHT_KINDS)}")
         if self.image_size % 16:
             raise ValueError(f"image_size must be a multiple of 16, got {self.image_size}")
+        side = self.image_size // 16
+        if self.global_grid and (side % self.global_grid or (side // self.global_grid) & (side // self.global_grid - 1)):
+            raise ValueError(f"global_grid must divide image_size / 16 = {side} by a power of 2, "
+                             f"got {self.global_grid}")
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
@@ -133,8 +140,10 @@ class Encoder(nn.Module):
         self.config = c = config
         w = c.width
         self.stem = _down_block(4, w)  # (w, S/2, S/2): kept for the texture's image look-up
-        self.backbone = nn.Sequential(_down_block(w, 2 * w), _down_block(2 * w, 4 * w), _down_block(4 * w, 8 * w))
-        feat = 8 * w * (c.image_size // 16) ** 2
+        grid = c.global_grid or c.image_size // 16
+        extra = [_down_block(8 * w, 8 * w) for _ in range(int(math.log2(c.image_size // 16 // grid)))]
+        self.backbone = nn.Sequential(_down_block(w, 2 * w), _down_block(2 * w, 4 * w), _down_block(4 * w, 8 * w), *extra)
+        feat = 8 * w * grid ** 2
         self.fc = nn.Sequential(nn.Flatten(), nn.Linear(feat, 512), nn.LeakyReLU(0.2, inplace=True))
         template = icosphere(c.template_subdivisions, radius=1.0)
         self.register_buffer("template_dirs", template.verts)  # unit sphere

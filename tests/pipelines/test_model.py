@@ -277,3 +277,18 @@ def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
     assert ((normals[:, centre] * to_camera[:, centre]).sum(-1) > 0.95).all()
     with pytest.raises(ValueError, match="pixels"):
         pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
+
+
+def test_a_fixed_global_grid_keeps_the_fully_connected_layer_at_any_input_size_and_is_the_default_at_64():
+    torch.manual_seed(0)
+    default = Encoder(ModelConfig(image_size=64))
+    torch.manual_seed(0)
+    grid4 = Encoder(ModelConfig(image_size=64, global_grid=4))
+    assert all(torch.equal(a, b) for a, b in zip(default.state_dict().values(), grid4.state_dict().values()))
+    at128 = Encoder(ModelConfig(image_size=128, global_grid=4))
+    assert at128.fc[1].weight.shape == default.fc[1].weight.shape and len(at128.backbone) == len(default.backbone) + 1
+    assert Encoder(ModelConfig(image_size=128)).fc[1].weight.shape[1] == 4 * default.fc[1].weight.shape[1]
+    pred = at128(encoder_input(torch.rand(1, 128, 128, 4)), _cams(1, 128))
+    assert torch.isfinite(pred.meshes().verts).all()
+    with pytest.raises(ValueError, match="global_grid must divide"):
+        ModelConfig(image_size=128, global_grid=3).validate()
