@@ -8,7 +8,7 @@ training maps). ``make study-scale``; details and results: docs/scale.md.
 
 Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pipelines.evaluate`` on the test
 split and on the train split (every 12th view: as many views as the test split), each in its own process (an
-entry point does not import another); a point's dataset is rendered by ``datagen`` when missing. Every step
+entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or incomplete. Every step
 resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
 run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
 run's end. Points marked GPU are skipped where CUDA is not available.
@@ -43,7 +43,7 @@ LIGHT_ROW_VIEWS = 4  # test views shown in each axis's light row (evaluate's fig
 @dataclass(frozen=True)
 class Point:
     name: str
-    axis: str  # "base" is on every axis
+    axis: str  # "base" is on every axis; "diagnostic" on none (listed and run, not plotted)
     value: int
     dataset: str  # folder under --data
     datagen: tuple[str, ...]  # how that dataset is rendered
@@ -206,20 +206,25 @@ def plot_light_row(axis: str, rows: list[dict], path: Path) -> None:
     save_figure(fig, path, dpi=100)
 
 
-TABLE_KEYS = ("image_whole", "iou", "texture", "light_ldr", "probe_metal", "probe_mirror", "direction_deg")
+TABLE_KEYS = ("image_whole", "iou", "texture", "normal_deg", "light_ldr", "probe_metal", "probe_mirror", "direction_deg")
+TRAIN_KEYS = ("image_whole", "light_ldr", "probe_metal")
+TITLES = dict(CURVES)
+
+
+def cell(r: dict | None, key: str) -> str:
+    """A metric, with its ratio to the constant map's score where it has one."""
+    if not r:
+        return "—"
+    ratio = f" ({r[key] / r[key + '_constant']:.2f}×)" if key + "_constant" in r else ""
+    return format_number(r[key], ".3g") + ratio
 
 
 def table(axis: str, rows: list[dict]) -> str:
-    """Test metrics per point; each light metric as its ratio to the constant map's where it has one."""
-    head = [AXIS_LABELS[axis], *TABLE_KEYS, "train image L1 (whole)", "train light LDR", "minutes"]
-    body = []
-    for r in rows:
-        t = r["test"]
-        cells = [format_number(t[k], ".3g") + (f" ({t[k] / t[k + '_constant']:.2f}×)" if k + "_constant" in t else "")
-                 for k in TABLE_KEYS]
-        train = r["train"] or {}
-        body.append([str(r["value"]), *cells, format_number(train.get("image_whole"), ".3g"),
-                     format_number(train.get("light_ldr"), ".3g"), format_number(r["minutes"], ".1f")])
+    """Each point's test metrics, a few train-split ones, its training time."""
+    head = [AXIS_LABELS[axis], *(TITLES[k] for k in TABLE_KEYS), *(f"train: {TITLES[k]}" for k in TRAIN_KEYS),
+            "training (min)"]
+    body = [[str(r["value"]), *(cell(r["test"], k) for k in TABLE_KEYS), *(cell(r["train"], k) for k in TRAIN_KEYS),
+             format_number(r["minutes"], ".1f")] for r in rows]
     return markdown_table(head, body)
 
 
