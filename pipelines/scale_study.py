@@ -64,10 +64,10 @@ POINTS = [
     # 500 objects: 400 training cars; 200 env maps: 160 training maps (the splits are 4:1)
     Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "scale/cars400"),
     Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "glossy-maps200/sg-seed0"),
-    # a diagnostic beside the resolution axis: at 128² the global code reads an 8 x 8 map, its fully connected
-    # layer 4x the 64² model's; variant global-grid-4 keeps it at 4 x 4 (docs/scale.md)
-    Point("res128-grid4", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "scale/res128-grid4",
-          ("--variant", "global-grid-4")),
+    # a diagnostic beside the resolution axis: the global code read off a map a sixteenth of the image's side
+    # (8 x 8 at 128², a fully connected layer 4x the 64² model's), as before the default's fixed 4 x 4 (docs/scale.md)
+    Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "scale/res128-grid0",
+          ("--global-grid", "0")),
 ]
 BY_NAME = {p.name: p for p in POINTS}
 

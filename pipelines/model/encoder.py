@@ -74,7 +74,7 @@ class ModelConfig:
     roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
     width: int = 32  # channels of the first conv layer
     # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
-    # a fixed side, one more downsampling block per halving (the fully connected layer's size then stays the same)
+    # at most this side, one more downsampling block per halving (the fully connected layer's size then stays the same)
     global_grid: int = 0
 
     def validate(self) -> None:
@@ -82,10 +82,6 @@ class ModelConfig:
             raise ValueError(f"unknown shading {self.shading!r}; choose from {sorted(LIGHT_KINDS)}")
         if self.image_size % 16:
             raise ValueError(f"image_size must be a multiple of 16, got {self.image_size}")
-        side = self.image_size // 16
-        if self.global_grid and (side % self.global_grid or (side // self.global_grid) & (side // self.global_grid - 1)):
-            raise ValueError(f"global_grid must divide image_size / 16 = {side} by a power of 2, "
-                             f"got {self.global_grid}")
         for name, allowed in CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
@@ -94,6 +90,14 @@ class ModelConfig:
         if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
                              "light_head 'probe'")
+
+    def grid_side(self) -> int:
+        """The side of the feature map the global code is read from: the image side / 16, halved (one more
+        downsampling block each) while it is even and above ``global_grid``."""
+        side = self.image_size // 16
+        while self.global_grid and side > self.global_grid and side % 2 == 0:
+            side //= 2
+        return side
 
     def to_dict(self) -> dict:
         return {"version": MODEL_VERSION, **asdict(self)}
@@ -140,8 +144,8 @@ class Encoder(nn.Module):
         self.config = c = config
         w = c.width
         self.stem = _down_block(4, w)  # (w, S/2, S/2): kept for the texture's image look-up
-        grid = c.global_grid or c.image_size // 16
-        extra = [_down_block(8 * w, 8 * w) for _ in range(int(math.log2(c.image_size // 16 // grid)))]
+        grid = c.grid_side()
+        extra = [_down_block(8 * w, 8 * w) for _ in range(int(math.log2(c.image_size // 16 // grid)))]  # one per halving
         self.backbone = nn.Sequential(_down_block(w, 2 * w), _down_block(2 * w, 4 * w), _down_block(4 * w, 8 * w), *extra)
         feat = 8 * w * grid ** 2
         self.fc = nn.Sequential(nn.Flatten(), nn.Linear(feat, 512), nn.LeakyReLU(0.2, inplace=True))

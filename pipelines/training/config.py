@@ -74,9 +74,9 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), or both that and its own (a render under each: one "
                                  "world light has to explain both views)", ("both", "view"))
-    global_grid: int = _opt(0, "side of the feature map the global code (shape, material) is read from: 0 for the "
-                            "image side / 16, or a fixed side (4: one more downsampling block per doubling above 64²)",
-                            minimum=0)
+    global_grid: int = _opt(4, "side of the feature map the global code (shape, material) is read from: the image side / 16 "
+                            "halved while above this (4: one more downsampling block per doubling above 64², so the "
+                            "fully connected layer is the same at any larger input), or 0 for the image side / 16", minimum=0)
     probe_normals: str = _opt("surface", "the normals the probe head's mirror cue reads: the predicted surface's, or "
                               "in evaluation an image-space network's fitted to the GT mesh's in each training view "
                               "(pixels: 3D supervision the paper does not use; training reads the surface's)",

@@ -76,6 +76,8 @@ def load_config(run: Path) -> TrainConfig:
         saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
         if isinstance(saved, dict) and is_earlier_config(saved):
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
+        if isinstance(saved, dict):
+            saved.setdefault("global_grid", 0)  # written before the field: the global code off the image side / 16
         config = TrainConfig.from_dict(saved)
     except (ConfigError, RetiredError) as e:
         raise DataError(f"{path}: {e}") from e

@@ -41,10 +41,6 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third",
                            {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    # the scale study's (docs/scale.md): the default at 64², other at larger inputs
-    "global-grid-4": Variant("the global code read from a 4 x 4 feature map at any input size (one more downsampling "
-                             "block per doubling above 64²), not from a map a sixteenth of the image's side",
-                             {"global_grid": 4}, runs=()),  # make study-scale: point res128-grid4
     # the variant whose numbers the README cites
     "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "

@@ -279,7 +279,7 @@ def test_pixel_samples_are_the_renderers_normals_at_the_covered_pixels():
         pixel_samples(sphere, cams, radiance[:, :16, :16], alpha[:, :16, :16])
 
 
-def test_a_fixed_global_grid_keeps_the_fully_connected_layer_at_any_input_size_and_is_the_default_at_64():
+def test_a_global_grid_of_4_keeps_the_fully_connected_layer_at_larger_inputs_and_changes_nothing_at_64():
     torch.manual_seed(0)
     default = Encoder(ModelConfig(image_size=64))
     torch.manual_seed(0)
@@ -290,5 +290,5 @@ def test_a_fixed_global_grid_keeps_the_fully_connected_layer_at_any_input_size_a
     assert Encoder(ModelConfig(image_size=128)).fc[1].weight.shape[1] == 4 * default.fc[1].weight.shape[1]
     pred = at128(encoder_input(torch.rand(1, 128, 128, 4)), _cams(1, 128))
     assert torch.isfinite(pred.meshes().verts).all()
-    with pytest.raises(ValueError, match="global_grid must divide"):
-        ModelConfig(image_size=128, global_grid=3).validate()
+    sides = {s: ModelConfig(image_size=s, global_grid=4).grid_side() for s in (32, 64, 96, 128, 256)}
+    assert sides == {32: 2, 64: 4, 96: 3, 128: 4, 256: 4}
