@@ -77,7 +77,8 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
         stats = dict(cycles_s=0.0, sample_s=0.0, asset_s=0.0, rendered_views=0, skipped_samples=0)
         stats["asset_s"] = _make_assets(out, cfg, p, sources, mine, run)
         stats.update(_render_samples(out, cfg, mine, run))
-        stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard), cycles_device=cycles_device)
+        stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard),
+                     cycles_device=cycles_device)
         write_json(DatasetLayout(out).timing(si, sn), stats)
         if preview and _all_samples_finished(out, p):
             from .preview import contact_sheet
