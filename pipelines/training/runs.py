@@ -76,12 +76,23 @@ def load_config(run: Path) -> TrainConfig:
         saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
         if isinstance(saved, dict) and is_earlier_config(saved):
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
-        if isinstance(saved, dict):
-            saved.setdefault("global_grid", 0)  # written before the field: the global code off the image side / 16
+        if isinstance(saved, dict) and "global_grid" not in saved:
+            saved["global_grid"] = _earlier_global_grid(Path(run))
         config = TrainConfig.from_dict(saved)
     except (ConfigError, RetiredError) as e:
         raise DataError(f"{path}: {e}") from e
     return config
+
+
+def _earlier_global_grid(run: Path) -> int:
+    """``global_grid`` of a run written before the field, which read its global code off the image side / 16 (0):
+    today's default where the two give the same model (every input up to 64²), else 0."""
+    if not (run / CHECKPOINT).exists():
+        return TrainConfig.global_grid
+    size = read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("image_size", 64)
+    today = TrainConfig.global_grid
+    same = ModelConfig(image_size=size).grid_side() == ModelConfig(image_size=size, global_grid=today).grid_side()
+    return today if same else 0
 
 
 def _trained_light_head(run: Path) -> str | None:

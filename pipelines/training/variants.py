@@ -61,6 +61,6 @@ VARIANTS: dict[str, Variant] = {
                                 {"supervision": "shape"}, kind="diagnostic", runs=(("metallic", 0),)),
 }
 
-# the fields some variant sets: a run that changes them by hand is labelled with them (not the lobes, which the
-# paper's tables set: a budget the tables compare, not a model choice)
-EXPERIMENT_FIELDS = tuple(dict.fromkeys(k for v in VARIANTS.values() for k in v.fields if k != "lobes"))
+# the fields some variant sets, and global_grid (its 0 only undoes a default): a run that changes them by hand is
+# labelled with them (not the lobes, which the paper's tables set: a budget the tables compare, not a model choice)
+EXPERIMENT_FIELDS = tuple(dict.fromkeys([*(k for v in VARIANTS.values() for k in v.fields if k != "lobes"), "global_grid"]))
