@@ -655,3 +655,17 @@ def test_a_run_warns_when_other_processes_keep_the_cores_busy(monkeypatch, capsy
     train_module.warn_if_cores_are_busy(2, busy=0.0)
     assert capsys.readouterr().err == ""
     assert 0.0 <= train_module.other_busy_cores()
+
+
+def test_a_run_written_before_global_grid_reads_as_the_model_it_trained(tmp_path):
+    from pipelines.training.runs import load_config
+
+    for size, grid, label in ((64, 4, ""), (128, 0, "global_grid=0")):
+        run = tmp_path / f"run{size}"
+        run.mkdir()
+        saved = TrainConfig(dataset="data/glossy", out=str(run)).to_dict()
+        del saved["global_grid"]  # the field did not exist yet; the global code was read off the image side / 16
+        (run / "config.json").write_text(json.dumps(saved))
+        torch.save({"model_config": {"image_size": size}, "model": {}, "iteration": 0}, run / "checkpoint.pt")
+        config = load_config(run)
+        assert config.global_grid == grid and config.label() == label, size
