@@ -26,18 +26,19 @@ import torch
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.display import tonemap_envmap
+from dibrpp.cli_args import check_output_folder
 from dibrpp.io import DataError
 from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure
 
 from .evaluation.summary import CONSTANT_REFERENCES
 from .model.model_input import encoder_input
+from .scoring import figure_views
 from .training.runs import is_run, load_run
 
 BASE = {"resolution": 64, "iterations": 1500, "cars": 80, "maps": 32}
 AXIS_LABELS = {"resolution": "input resolution (pixels a side)", "iterations": "training iterations",
                "cars": "training cars", "maps": "training env maps"}
 TRAIN_SPLIT_STRIDE = 12  # 2 views a training sample: 320 views, as many as the test split's at stride 3
-LIGHT_ROW_VIEWS = 4  # test views shown in each axis's light row (evaluate's figure views)
 
 
 @dataclass(frozen=True)
@@ -115,13 +116,20 @@ def run_point(p: Point, data: Path, runs: Path, out: Path, train_args: tuple[str
        "--view-stride", str(TRAIN_SPLIT_STRIDE), *device)
 
 
-def result(out: Path, split: str, run: Path) -> dict | None:
-    """The evaluation of ``run`` in ``out/split`` (evaluate names its JSON after the run's folder)."""
+def evaluated(out: Path, split: str) -> dict[Path, dict]:
+    """Every evaluation in ``out/split`` by its run's folder (evaluate names a JSON after the run's folder, not
+    its path)."""
+    found = {}
     for path in sorted((out / split).glob("*/*.json")):
         r = json.loads(path.read_text())
-        if isinstance(r, dict) and Path(r.get("run", "")).resolve() == run.resolve():
-            return r
-    return None
+        if isinstance(r, dict) and "run" in r:
+            found[Path(r["run"]).resolve()] = r
+    return found
+
+
+def result(out: Path, split: str, run: Path) -> dict | None:
+    """The evaluation of ``run`` in ``out/split``."""
+    return evaluated(out, split).get(run.resolve())
 
 
 def train_minutes(run: Path) -> float | None:
@@ -140,9 +148,9 @@ CURVES = [("image_whole", "image L1, whole image"), ("image_foreground", "image 
 
 def axis_rows(axis: str, runs: Path, out: Path) -> list[dict]:
     """One row per evaluated point of ``axis``: its value, both splits' metrics, its training time."""
-    rows = []
+    rows, tests, trains = [], evaluated(out, "test"), evaluated(out, "train")
     for p in on_axis(axis):
-        test, train = result(out, "test", runs / p.run), result(out, "train", runs / p.run)
+        test, train = tests.get((runs / p.run).resolve()), trains.get((runs / p.run).resolve())
         if test is None:
             continue
         rows.append({"point": p.name, "value": value(p, axis), "run": runs / p.run, "test": test, "train": train,
@@ -179,8 +187,7 @@ def predicted_lights(run: Path) -> tuple[list[torch.Tensor], list[torch.Tensor]]
     split: different samples, the same at every point of an axis (the sets share their cars, maps and splits)."""
     loaded = load_run(run)
     ds = MultiViewDataset(loaded.config.dataset, split="test", views_per_item=1)
-    shown = list(range(0, len(ds), max(1, len(ds) // LIGHT_ROW_VIEWS)))[:LIGHT_ROW_VIEWS]
-    b = collate([ds[i] for i in shown])
+    b = collate([ds[i] for i in figure_views(ds)])
     pred = loaded.model(encoder_input(b["image"][:, 0]), b["cameras"])
     env = b["envmap"]
     maps = pred.light(b["cameras"].world_to_camera).to_envmap(env.shape[1], env.shape[2]).image
@@ -244,8 +251,10 @@ def report(runs: Path, out: Path) -> None:
 
 
 def list_points(runs: Path, out: Path) -> None:
+    tests, trains = evaluated(out, "test"), evaluated(out, "train")
     for p in POINTS:
-        state = ("evaluated" if result(out, "test", runs / p.run) and result(out, "train", runs / p.run) else
+        run = (runs / p.run).resolve()
+        state = ("evaluated" if run in tests and run in trains else
                  "trained" if (runs / p.run / "summary.json").exists() else "started" if is_run(runs / p.run) else "-")
         print(f"{p.name:9s} {p.axis:10s} {p.dataset:15s} {p.run:26s} {'GPU ' if p.gpu else ''}{state}")
 
@@ -266,6 +275,14 @@ def main(argv=None) -> int:
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         print(f"error: no point {', '.join(unknown)}; the points: {', '.join(BY_NAME)}", file=sys.stderr)
+        return 2
+    try:
+        if not args.data.is_dir():
+            raise DataError(f"--data {args.data}: no such folder; give the folder the datasets are in (or go in)")
+        for flag, folder in (("--runs", args.runs), ("--out", args.out)):
+            check_output_folder(flag, folder)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
         return 2
     if args.command == "list":
         list_points(args.runs, args.out)

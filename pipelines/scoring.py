@@ -86,6 +86,11 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
     return per_view, rows
 
 
+def figure_views(ds: MultiViewDataset) -> list[int]:
+    """The views a run's figure shows: the first of FIGURE_ROWS samples spread over the split."""
+    return list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]
+
+
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
                  view_stride: int = 1, split: str = "test", refine_steps: int = 0,
                  device: str = "cpu") -> tuple[dict, dict]:
@@ -128,7 +133,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
                   view_stride=view_stride, variant=config.label(), split=split, refine_steps=refine_steps,
                   seconds_per_view=(time.perf_counter() - t0) / len(views))
-    shown = list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]  # different samples
+    shown = figure_views(ds)
     worst = {k: views[int(per_view[k].argmax())] for k in FAILURE_METRICS}
     _, example_rows = predict_views(model, renderer, ds, [ds[i] for i in shown], figure=True, refine=refine)
     _, failure_rows = predict_views(model, renderer, ds, [ds[i] for i in worst.values()], figure=True, refine=refine)
