@@ -41,7 +41,7 @@ help:
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
 	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~35 min)"
-	@echo "make study-scale      the default SG model along resolution, length and data: curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; all of them ~14 h on 2 cores)"
+	@echo "make study-scale      the default SG model along resolution, length and data: runs in runs-scale/, curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; all of them ~14 h on 2 cores)"
 	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1 h)"
 
 setup: system-libs $(VENV)/.installed
@@ -201,9 +201,9 @@ study-resolution: $(VENV)/.installed
 # test and train splits, then the curves and light rows (results/scale/). Resumable at every step.
 SCALE_POINTS ?=
 study-scale: $(VENV)/.installed
-	$(PY) -m pipelines.scale_study run --data $(DATA) --runs $(RUNS) $(if $(SCALE_POINTS),--points $(SCALE_POINTS)) \
+	$(PY) -m pipelines.scale_study run --data $(DATA) --main-runs $(RUNS) $(if $(SCALE_POINTS),--points $(SCALE_POINTS)) \
 	  $(if $(TRAIN_ARGS),--train-args='$(TRAIN_ARGS)')
-	$(PY) -m pipelines.scale_study report --data $(DATA) --runs $(RUNS)
+	$(PY) -m pipelines.scale_study report --data $(DATA) --main-runs $(RUNS)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

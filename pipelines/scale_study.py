@@ -8,7 +8,10 @@ training maps). ``make study-scale``; details and results: docs/scale.md.
 
 Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pipelines.evaluate`` on the test
 split and on the train split (every 12th view: as many views as the test split), each in its own process (an
-entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or incomplete. Every step
+entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or incomplete. The study's
+own runs go in ``--runs`` (default runs-scale/), outside the runs ``make eval`` tables: a run on 20 cars or of 750
+iterations is not a paper row. The base point and the 200-map point are the runs ``make train-glossy`` and ``make
+study-maps`` train, read from (or trained into) ``--main-runs`` (default runs/). Every step
 resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
 run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
 run's end. Points marked GPU are skipped where CUDA is not available.
@@ -48,26 +51,39 @@ class Point:
     value: int
     dataset: str  # folder under --data
     datagen: tuple[str, ...]  # how that dataset is rendered
-    run: str  # folder under --runs
+    run: str  # folder under --runs, or under --main-runs if ``main``
     train: tuple[str, ...] = ()  # flags beside the defaults
     gpu: bool = False
+    main: bool = False  # a run of the Makefile's own targets, which make eval tables
+
+
+@dataclass(frozen=True)
+class Folders:
+    data: Path
+    runs: Path  # the study's own runs
+    main_runs: Path  # make train-glossy's and make study-maps' runs
+    out: Path
+
+    def run(self, p: Point) -> Path:
+        return (self.main_runs if p.main else self.runs) / p.run
 
 
 GLOSSY = ("--dataset", "glossy")
 POINTS = [
-    Point("base", "base", 0, "glossy", GLOSSY, "glossy/sg-seed0"),
-    *(Point(f"res{r}", "resolution", r, f"glossy-{r}", (*GLOSSY, "--resolution", str(r)), f"scale/res{r}",
+    Point("base", "base", 0, "glossy", GLOSSY, "glossy/sg-seed0", main=True),
+    *(Point(f"res{r}", "resolution", r, f"glossy-{r}", (*GLOSSY, "--resolution", str(r)), f"res{r}",
             gpu=r > 128) for r in (32, 128, 256)),
-    *(Point(f"its{n}", "iterations", n, "glossy", GLOSSY, f"scale/its{n}", ("--iterations", str(n)))
+    *(Point(f"its{n}", "iterations", n, "glossy", GLOSSY, f"its{n}", ("--iterations", str(n)))
       for n in (750, 3000, 6000, 12000, 24000)),
-    *(Point(f"cars{n}", "cars", n, "glossy", GLOSSY, f"scale/cars{n}", ("--train-objects", str(n)))
+    *(Point(f"cars{n}", "cars", n, "glossy", GLOSSY, f"cars{n}", ("--train-objects", str(n)))
       for n in (10, 20, 40)),
     # 500 objects: 400 training cars; 200 env maps: 160 training maps (the splits are 4:1)
-    Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "scale/cars400"),
-    Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "glossy-maps200/sg-seed0"),
+    Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "cars400"),
+    Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "glossy-maps200/sg-seed0",
+          main=True),
     # a diagnostic beside the resolution axis: the global code read off a map a sixteenth of the image's side
     # (8 x 8 at 128², a fully connected layer 4x the 64² model's), as before the default's fixed 4 x 4 (docs/scale.md)
-    Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "scale/res128-grid0",
+    Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "res128-grid0",
           ("--global-grid", "0")),
 ]
 BY_NAME = {p.name: p for p in POINTS}
@@ -98,14 +114,14 @@ def complete(dataset: Path) -> bool:
     return True
 
 
-def run_point(p: Point, data: Path, runs: Path, out: Path, train_args: tuple[str, ...] = ()) -> None:
+def run_point(p: Point, folders: Folders, train_args: tuple[str, ...] = ()) -> None:
     """Render (if missing), train (or resume) and evaluate one point on both splits; ``train_args``: flags
     for every new run (a resumed run keeps its own)."""
     if p.gpu and not torch.cuda.is_available():
         print(f"== {p.name}: needs a GPU; skipped")
         return
     print(f"== {p.name}: {p.axis} {p.value or ''}", flush=True)
-    dataset, run = data / p.dataset, runs / p.run
+    dataset, run, out = folders.data / p.dataset, folders.run(p), folders.out
     if not complete(dataset):
         sh("-m", "datagen", *p.datagen, "--out", str(dataset), "--quiet")
     device = ("--device", "cuda") if p.gpu else ()
@@ -146,15 +162,16 @@ CURVES = [("image_whole", "image L1, whole image"), ("image_foreground", "image 
           ("minutes", "training wall time (min, 2 cores)")]
 
 
-def axis_rows(axis: str, runs: Path, out: Path) -> list[dict]:
+def axis_rows(axis: str, folders: Folders) -> list[dict]:
     """One row per evaluated point of ``axis``: its value, both splits' metrics, its training time."""
-    rows, tests, trains = [], evaluated(out, "test"), evaluated(out, "train")
+    rows, tests, trains = [], evaluated(folders.out, "test"), evaluated(folders.out, "train")
     for p in on_axis(axis):
-        test, train = tests.get((runs / p.run).resolve()), trains.get((runs / p.run).resolve())
+        run = folders.run(p)
+        test, train = tests.get(run.resolve()), trains.get(run.resolve())
         if test is None:
             continue
-        rows.append({"point": p.name, "value": value(p, axis), "run": runs / p.run, "test": test, "train": train,
-                     "minutes": train_minutes(runs / p.run)})
+        rows.append({"point": p.name, "value": value(p, axis), "run": run, "test": test, "train": train,
+                     "minutes": train_minutes(run)})
     return rows
 
 
@@ -235,11 +252,12 @@ def table(axis: str, rows: list[dict]) -> str:
     return markdown_table(head, body)
 
 
-def report(runs: Path, out: Path) -> None:
+def report(folders: Folders) -> None:
+    out = folders.out
     text = ["# Scale study: the default SG model along each axis", "",
             "Test split (unseen cars under unseen maps) unless marked train; (×) is the ratio to a constant map's score.", ""]
     for axis in BASE:
-        rows = axis_rows(axis, runs, out)
+        rows = axis_rows(axis, folders)
         if len(rows) < 2:
             print(f"{axis}: {len(rows)} point(s) evaluated; no curve")
             continue
@@ -250,13 +268,13 @@ def report(runs: Path, out: Path) -> None:
     print(f"wrote {out}/scale.md and the figures beside it")
 
 
-def list_points(runs: Path, out: Path) -> None:
-    tests, trains = evaluated(out, "test"), evaluated(out, "train")
+def list_points(folders: Folders) -> None:
+    tests, trains = evaluated(folders.out, "test"), evaluated(folders.out, "train")
     for p in POINTS:
-        run = (runs / p.run).resolve()
-        state = ("evaluated" if run in tests and run in trains else
-                 "trained" if (runs / p.run / "summary.json").exists() else "started" if is_run(runs / p.run) else "-")
-        print(f"{p.name:9s} {p.axis:10s} {p.dataset:15s} {p.run:26s} {'GPU ' if p.gpu else ''}{state}")
+        run = folders.run(p)
+        state = ("evaluated" if run.resolve() in tests and run.resolve() in trains else
+                 "trained" if (run / "summary.json").exists() else "started" if is_run(run) else "-")
+        print(f"{p.name:12s} {p.axis:10s} {p.dataset:15s} {str(run):36s} {'GPU ' if p.gpu else ''}{state}")
 
 
 def main(argv=None) -> int:
@@ -266,7 +284,9 @@ def main(argv=None) -> int:
     ap.add_argument("--points", help="comma-separated point names, in the order to run them (default: every point "
                     "the machine can run, in the listed order)")
     ap.add_argument("--data", default="data", type=Path, help="datasets folder (default: data)")
-    ap.add_argument("--runs", default="runs", type=Path, help="runs folder (default: runs)")
+    ap.add_argument("--runs", default="runs-scale", type=Path, help="the study's own runs (default: runs-scale)")
+    ap.add_argument("--main-runs", default="runs", type=Path, help="the runs make eval tables, where the base point "
+                    "(make train-glossy's glossy/sg-seed0) and the 200-map point (make study-maps') are (default: runs)")
     ap.add_argument("--out", default="results/scale", type=Path, help="results folder (default: results/scale)")
     ap.add_argument("--train-args", default="", help="flags for every new run, e.g. --train-args='--threads 1' (runs "
                     "that repeat bit for bit)")
@@ -279,19 +299,20 @@ def main(argv=None) -> int:
     try:
         if not args.data.is_dir():
             raise DataError(f"--data {args.data}: no such folder; give the folder the datasets are in (or go in)")
-        for flag, folder in (("--runs", args.runs), ("--out", args.out)):
+        for flag, folder in (("--runs", args.runs), ("--main-runs", args.main_runs), ("--out", args.out)):
             check_output_folder(flag, folder)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    folders = Folders(args.data, args.runs, args.main_runs, args.out)
     if args.command == "list":
-        list_points(args.runs, args.out)
+        list_points(folders)
     elif args.command == "report":
-        report(args.runs, args.out)
+        report(folders)
     else:
         try:
             for name in names:
-                run_point(BY_NAME[name], args.data, args.runs, args.out, tuple(args.train_args.split()))
+                run_point(BY_NAME[name], folders, tuple(args.train_args.split()))
         except subprocess.CalledProcessError as e:
             print(f"error: {' '.join(e.cmd[1:])} failed (exit {e.returncode}); fix it and rerun to resume",
                   file=sys.stderr)
