@@ -85,6 +85,10 @@ POINTS = [
     # (8 x 8 at 128², a fully connected layer 4x the 64² model's), as before the default's fixed 4 x 4 (docs/scale.md)
     Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "res128-grid0",
           ("--global-grid", "0")),
+    # the metallic set (a mirror paint: the input a distorted picture of the map) at the best glossy point, beside
+    # make train-metallic's 64² run
+    Point("metallic128", "diagnostic", 128, "metallic-128", ("--dataset", "metallic", "--resolution", "128"),
+          "metallic128"),
 ]
 BY_NAME = {p.name: p for p in POINTS}
 

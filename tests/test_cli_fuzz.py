@@ -79,6 +79,8 @@ CLIS = [
         strings=("points",), free=("train_args",)),
     Cli("python -m pipelines.diagnose_light", "pipelines.diagnose_light:main", ["--run", "{run}"],
         ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in", dataset="dir-in")),
+    Cli("python -m pipelines.diagnose_sky", "pipelines.diagnose_sky:main", ["--runs", "{run}"],
+        ("pipelines.diagnose_sky:diagnose",), paths=dict(runs="dir-in")),
     Cli("python -m pipelines.diagnose_shape", "pipelines.diagnose_shape:main", ["--dataset", "{data}"],
         ("pipelines.diagnose_shape:diagnose",), paths=dict(dataset="dir-in"), strings=("signals",)),
     Cli("python -m dibrpp render", "dibrpp.cli:main",

@@ -220,6 +220,47 @@ def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.arccos((a * b).sum(-1).clamp(-1, 1)))
 
 
+# The light beyond the sun: a sky over a ground. Each map is split at the horizon without its sun and the sun's glow
+# (the cells within SKY_SUN_CONE_DEG of its dominant direction); a sky is at least SKY_BRIGHTER times as bright as
+# its ground and SKY_BLUER bluer (blue chromaticity b / (r + g + b)). A constant map has neither.
+SKY_SUN_CONE_DEG, SKY_BRIGHTER, SKY_BLUER = 25.0, 1.25, 0.01
+
+
+def sky_and_ground(env: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, 3) and (B, 3): the mean radiance (by solid angle) of world-frame equirect maps (B, H, W, 3) above and
+    below the horizon, without the cells within SKY_SUN_CONE_DEG of each map's dominant direction."""
+    from dibrpp.conventions import equirect_directions, equirect_solid_angles
+
+    b, h, w, _ = env.shape
+    dirs = equirect_directions(h, w, dtype=env.dtype).reshape(-1, 3)
+    solid = equirect_solid_angles(h, w, dtype=env.dtype).expand(h, w).reshape(1, -1)
+    sun = dominant_direction(env)[0]
+    weight = solid * ((sun @ dirs.T) < math.cos(math.radians(SKY_SUN_CONE_DEG)))
+    radiance = env.reshape(b, -1, 3)
+
+    def mean(side: torch.Tensor) -> torch.Tensor:
+        ws = weight * side
+        return (radiance * ws[..., None]).sum(1) / ws.sum(1, keepdim=True).clamp_min(1e-12)
+
+    up = dirs[:, 2] > 0
+    return mean(up), mean(~up)
+
+
+def sky_contrast(env: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,) how many times as bright as its ground the sky of each map is, and (B,) how much bluer."""
+    from dibrpp.conventions import LUMINANCE_WEIGHTS
+
+    sky, ground = sky_and_ground(env)
+    lum = sky.new_tensor(LUMINANCE_WEIGHTS)
+    blue = lambda c: c[:, 2] / c.sum(-1).clamp_min(1e-12)  # noqa: E731
+    return (sky @ lum) / (ground @ lum).clamp_min(1e-12), blue(sky) - blue(ground)
+
+
+def has_sky(ratio: torch.Tensor, bluer: torch.Tensor) -> torch.Tensor:
+    """(B,) whether :func:`sky_contrast`'s ratio and blueness make a sky over a ground."""
+    return (ratio >= SKY_BRIGHTER) & (bluer >= SKY_BLUER)
+
+
 # A map has a dominant light (a sun, or a window or lamp in a room) when one cell of the 16 x 32 grid sends
 # at least this fraction of its power (measured on the default maps: skies with a clear sun 0.25-0.82,
 # hazy skies 0.01-0.04, rooms 0.05-0.30).

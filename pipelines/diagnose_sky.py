@@ -1,0 +1,82 @@
+"""Whether a run's light has a sky over a ground: ``python -m pipelines.diagnose_sky --runs RUN [RUN ...]``.
+
+The light beyond the sun, measured. On the test views whose GT map has a sky brighter and bluer than its ground
+(outdoor light), each run's predicted light (world frame) and the GT map are each split at the horizon, leaving out
+the sun and its glow (diagnose_light's): how much brighter the sky is than the ground (the ratio of their mean
+luminances) and how much bluer (the difference of their blue chromaticities, b / (r + g + b)), medians over the
+views, and the share of views where the predicted sky is as much brighter and bluer as makes a sky
+(``metrics.has_sky``: at least 1.25 times as bright, 0.01 bluer), as every selected GT map is. A constant map has
+neither (ratio 1, difference 0): its row is the reference.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import torch
+
+from datagen.reader import MultiViewDataset, collate
+from dibrpp.cli_args import Parser, positive_int
+from dibrpp.formatting import markdown_table
+from dibrpp.io import DataError
+
+from .evaluation import metrics
+from .model.model_input import encoder_input
+from .training.runs import load_run, run_folder
+
+
+@torch.no_grad()
+def diagnose(run: Path, stride: int = 3) -> dict:
+    """The sky against the ground of ``run``'s predicted light and of the GT maps on its test views with a sky."""
+    loaded = load_run(run)
+    ds = MultiViewDataset(loaded.config.dataset, split="test", views_per_item=1)
+    views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
+    pred, gt = [], []
+    for start in range(0, len(views), 16):
+        b = collate([ds[i] for i in views[start:start + 16]])
+        rgba, cams, env = b["image"][:, 0], b["cameras"], b["envmap"]
+        gt_ratio, gt_bluer = metrics.sky_contrast(env)
+        outdoor = metrics.has_sky(gt_ratio, gt_bluer)
+        if not outdoor.any():
+            continue
+        light = loaded.model(encoder_input(rgba[outdoor]), cams[outdoor]).light(cams.world_to_camera[outdoor])
+        pred.append(torch.stack(metrics.sky_contrast(light.to_envmap(env.shape[1], env.shape[2]).image), 1))
+        gt.append(torch.stack([gt_ratio[outdoor], gt_bluer[outdoor]], 1))
+    if not pred:
+        raise DataError(f"{run}: no test view of {loaded.config.dataset} has a sky brighter and bluer than its ground")
+    pred, gt = torch.cat(pred), torch.cat(gt)
+    return {"views": len(pred), "ratio": float(pred[:, 0].median()), "ratio_gt": float(gt[:, 0].median()),
+            "bluer": float(pred[:, 1].median()), "bluer_gt": float(gt[:, 1].median()),
+            "brighter_share": float((pred[:, 0] >= metrics.SKY_BRIGHTER).float().mean()),
+            "bluer_share": float((pred[:, 1] >= metrics.SKY_BLUER).float().mean()),
+            "sky_share": float(metrics.has_sky(pred[:, 0], pred[:, 1]).float().mean())}
+
+
+HEADER = ["run", "test views with a sky", "sky / ground luminance, median (GT)", "sky − ground blue, median (GT)",
+          f"sky ≥ {metrics.SKY_BRIGHTER}× ground", f"sky ≥ {metrics.SKY_BLUER} bluer", "both (a sky over a ground)"]
+
+
+def row(name: str, r: dict) -> list[str]:
+    return [name, str(r["views"]), f"{r['ratio']:.2f} ({r['ratio_gt']:.2f})", f"{r['bluer']:+.3f} ({r['bluer_gt']:+.3f})",
+            f"{100 * r['brighter_share']:.0f} %", f"{100 * r['bluer_share']:.0f} %", f"{100 * r['sky_share']:.0f} %"]
+
+
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m pipelines.diagnose_sky", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", required=True, nargs="+", metavar="DIR", help="run folders")
+    ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
+                    help="every N-th test view of each object, as make eval (default: 3)")
+    args = ap.parse_args(argv)
+    try:
+        results = [(str(run), diagnose(run_folder(Path(run)), args.view_stride)) for run in args.runs]
+    except DataError as e:
+        ap.error(str(e))
+    first = results[0][1]
+    constant = {**first, "ratio": 1.0, "bluer": 0.0, "brighter_share": 0.0, "bluer_share": 0.0, "sky_share": 0.0}
+    print(markdown_table(HEADER, [row(name, r) for name, r in results] +
+                         [row(f"a constant map (the reference; GT of {results[0][0]})", constant)]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
