@@ -8,10 +8,10 @@ training maps). ``make study-scale``; details and results: docs/scale.md.
 
 Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pipelines.evaluate`` on the test
 split and on the train split (every 12th view: as many views as the test split), each in its own process (an
-entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or incomplete. The study's
-own runs go in ``--runs`` (default runs-scale/), outside the runs ``make eval`` tables: a run on 20 cars or of 750
-iterations is not a paper row. The base point and the 200-map point are the runs ``make train-glossy`` and ``make
-study-maps`` train, read from (or trained into) ``--main-runs`` (default runs/). Every step
+entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or
+incomplete. The study's own runs go in ``--runs`` (default runs-scale/), outside the runs ``make eval`` tables: a
+run on 20 cars or of 750 iterations is not a paper row. The base point and the 200-map point are the runs ``make
+train-glossy`` and ``make study-maps`` train, read from (or trained into) ``--main-runs`` (default runs/). Every step
 resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
 run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
 run's end. Points marked GPU are skipped where CUDA is not available.
@@ -47,7 +47,7 @@ TRAIN_SPLIT_STRIDE = 12  # 2 views a training sample: 320 views, as many as the 
 @dataclass(frozen=True)
 class Point:
     name: str
-    axis: str  # "base" is on every axis; "diagnostic" on none (listed and run, not plotted)
+    axis: str  # "base" is on every axis; "diagnostic" on none (a controlled run or another set: run, not plotted)
     value: int
     dataset: str  # folder under --data
     datagen: tuple[str, ...]  # how that dataset is rendered

@@ -35,7 +35,7 @@ def test_a_constant_map_with_a_sun_has_no_sky():
 def test_the_cli_reads_a_run_and_says_what_it_measured(tiny_glossy, tmp_path, capsys):
     run = tmp_path / "sg"
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy), "--iterations", "2", "--out", str(run),
-                           "--no-progress"]) == 0
+                       "--no-progress"]) == 0
     code = diagnose_sky.main(["--runs", str(run), "--view-stride", "1"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
