@@ -46,6 +46,7 @@ from .evaluation import metrics
 from .model.light_probe import cue_sun_power, mirror_directions, pixel_samples, scatter_to_grid, world_to_probe
 from .model.prediction import LIGHT_KINDS, white_balance
 from .model.model_input import clip_input, encoder_input, input_radiance
+from .scoring import strided_views
 from .training.runs import check_image_size, load_run, run_folder
 
 SUN_SHARPNESS = 300.0  # the added sun's lobe (~3 degrees): the probe metrics average the light over 7.5-degree cells
@@ -158,7 +159,7 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
         raise DataError(f"{run} trained on {dataset}: --split all would count the samples it trained on; use --split test")
     ds = MultiViewDataset(dataset, split=split, views_per_item=1)
     check_image_size(run, model.config.image_size, ds)
-    views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
+    views = strided_views(ds, stride)
     errors, lifts, shares, probes, maps, elevations, normals = {}, {}, [], {}, [], [], []
     sun_sums, samples, suns, sunny_views = {"predicted": [], "GT": []}, [], [], []
     shapes, read_views = {}, []  # each object's predicted vertices, and what its normals are measured on again

@@ -22,6 +22,7 @@ from dibrpp.io import DataError
 
 from .evaluation import metrics
 from .model.model_input import encoder_input
+from .scoring import strided_views
 from .training.runs import load_run, run_folder
 
 
@@ -30,7 +31,7 @@ def diagnose(run: Path, stride: int = 3) -> dict:
     """The sky against the ground of ``run``'s predicted light and of the GT maps on its test views with a sky."""
     loaded = load_run(run)
     ds = MultiViewDataset(loaded.config.dataset, split="test", views_per_item=1)
-    views = [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
+    views = strided_views(ds, stride)
     pred, gt = [], []
     for start in range(0, len(views), 16):
         b = collate([ds[i] for i in views[start:start + 16]])

@@ -91,6 +91,11 @@ def figure_views(ds: MultiViewDataset) -> list[int]:
     return list(range(0, len(ds), max(1, len(ds) // FIGURE_ROWS)))[:FIGURE_ROWS]
 
 
+def strided_views(ds: MultiViewDataset, stride: int) -> list[int]:
+    """Every ``stride``-th view of each sample of ``ds`` (make eval's views at stride 3: one every 45 degrees)."""
+    return [i for i in range(len(ds)) if (i % ds.num_views) % stride == 0]
+
+
 def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_spp: int = 64,
                  view_stride: int = 1, split: str = "test", refine_steps: int = 0,
                  device: str = "cpu") -> tuple[dict, dict]:
@@ -104,7 +109,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
     check_image_size(run, model.config.image_size, ds)
     renderer = make_renderer(config, seed=0, spp=eval_spp)
-    views = [i for i in range(len(ds)) if (i % ds.num_views) % view_stride == 0]
+    views = strided_views(ds, view_stride)
     refine = (refine_steps, make_renderer(config, seed=0, training=True)) if refine_steps else None
     per_view, t0 = {}, time.perf_counter()
     for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
