@@ -54,9 +54,6 @@ class TrainConfig:
     w_iou: float = _opt(1.0, "weight of the soft-silhouette IoU loss", minimum=0.0)
     w_laplacian: float = _opt(0.02, "weight of the Laplacian smoothness of the shape", minimum=0.0)
     w_gradient: float = _opt(0.5, "weight of the multi-scale image-gradient L1 (the stand-in for VGG)", minimum=0.0)
-    w_albedo_variation: float = _opt(0.0, "weight of the L1 of the albedo texture's differences between neighbouring "
-                                     "texels (a piecewise-constant albedo: the light explains smooth gradients)",
-                                     minimum=0.0)
     image_loss: str = _opt("hdr-srgb", "the space the image losses compare in: the sRGB curve continued above 1 "
                            "(highlights keep their gradient), or sRGB clipped at 1 (an 8-bit picture's, the paper's)",
                            ("hdr-srgb", "clipped"))

@@ -78,15 +78,6 @@ def gradient_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, scales: int 
     return total / scales
 
 
-def albedo_variation(texture: torch.Tensor) -> torch.Tensor:
-    """Mean L1 of the differences between neighbouring texels of albedo textures (B, Ht, Wt, 3), linear, on the
-    template's equirect (its azimuth wraps), in display sRGB. A car's albedo is piecewise constant (paint, stripes,
-    decals, windows): an edge costs its contrast once, where a reflection's or a shading's smooth gradient kept in
-    the albedo costs it at every texel, so the light is asked to explain those (the Retinex prior)."""
-    srgb = hdr_srgb(texture)
-    return (srgb - srgb.roll(1, dims=2)).abs().mean() + torch.diff(srgb, dim=1).abs().mean()
-
-
 @functools.lru_cache(maxsize=1)
 def _probe_scene() -> ProbeScene:
     """The probe spheres seen from four directions around the horizon, 20 degrees above it."""

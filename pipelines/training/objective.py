@@ -18,8 +18,8 @@ from dibrpp.shading import GBuffer
 
 from .config import SG_LIGHT, TrainConfig
 from ..model.light_probe import world_to_probe
-from .losses import (albedo_variation, foreground_l1, gradient_loss, image_space, soft_iou_loss,
-                     sun_supervision_loss, supervised_light_loss)
+from .losses import (foreground_l1, gradient_loss, image_space, soft_iou_loss, sun_supervision_loss,
+                     supervised_light_loss)
 from ..model.model_input import encoder_input
 from ..model.pixel_normals import normal_loss
 
@@ -69,9 +69,6 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:], independent=other),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
-    if config.w_albedo_variation:  # (absent at 0: the default's log keeps its columns)
-        terms["albedo_variation"] = albedo_variation(pred.texture)
-        weights["albedo_variation"] = config.w_albedo_variation
     if config.supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
         terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"],
                                                           world_to_probe(views.world_to_camera.to(target)),

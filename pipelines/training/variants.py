@@ -14,8 +14,7 @@ class Variant:
     description: str
     fields: dict
     runs: tuple[tuple[str, int], ...] = (("glossy", 0),)  # (dataset, seed) of each run `make train-variants` trains
-    kind: str = "ablation"  # published (the paper's model) | paper (Table E) | ablation (one of our choices undone) |
-    # experiment (a change under test, not yet the default) | diagnostic
+    kind: str = "ablation"  # published (the paper's model) | paper (Table E) | ablation (one of our choices undone) | diagnostic
 
 
 # DIB-R++ as the paper describes it, where our renderer and data allow (docs/deviations.md lists what still differs)
@@ -47,10 +46,6 @@ VARIANTS: dict[str, Variant] = {
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "
                              "(3D supervision the paper does not use)",
                              {"probe_normals": "pixels"}, runs=(("metallic", 0), ("glossy", 0))),
-    # changes under test
-    "albedo-variation": Variant("the albedo asked to be piecewise constant (an L1 on its texture's gradient), so that "
-                                "the light explains the reflections' smooth colour gradients",
-                                {"w_albedo_variation": 1.0}, kind="experiment"),
     # diagnostics: they read ground truth, so they measure a limit, not a model
     "light-supervised-map": Variant("the light supervised by the GT env map (log L1 on the map)",
                                     {"supervision": "light-map"}, kind="diagnostic",
