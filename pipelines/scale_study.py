@@ -89,6 +89,9 @@ POINTS = [
     # make train-metallic's 64² run
     Point("metallic128", "diagnostic", 128, "metallic-128", ("--dataset", "metallic", "--resolution", "128"),
           "metallic128"),
+    # and at the best glossy length, beside make train-metallic's 1500-iteration run
+    Point("metallic6000", "diagnostic", 6000, "metallic", ("--dataset", "metallic"), "metallic6000",
+          ("--iterations", "6000")),
 ]
 BY_NAME = {p.name: p for p in POINTS}
 
