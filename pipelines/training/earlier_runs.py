@@ -18,9 +18,9 @@ class RetiredError(ValueError):
     """A run this code cannot read as it was trained: the message says which commit can."""
 
 
-def _refuse(what: str) -> RetiredError:
-    return RetiredError(f"{what}; that experiment has left the code: evaluate or resume it at commit {LAST_COMMIT} "
-                        f"(git checkout {LAST_COMMIT}), or retrain it")
+def _refuse(what: str, commit: str = LAST_COMMIT) -> RetiredError:
+    return RetiredError(f"{what}; that experiment has left the code: evaluate or resume it at commit {commit} "
+                        f"(git checkout {commit}), or retrain it")
 
 
 def _probe_sun_fields(light_head: str) -> dict:
@@ -65,6 +65,21 @@ RETIRED_TRAINING = {"cross_view_only": (False,), "shared_light": (False,), "swap
                     "shape_detail": ("none",), "sun_min_sharpness": (0.5, 0)}
 DROPPED = ("image_size", "snapshot_every")  # the data's size; how often snapshots were written
 SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"}  # under the probe head
+
+
+# training options of experiments that left the code later, the model unchanged: the value(s) under which the run
+# is the default model, and the last commit with the experiment's code
+LEFT_LATER = {"w_albedo_variation": ((0, 0.0), "84e9556")}
+
+
+def without_options_left_later(saved: dict) -> dict:
+    """A run's config without the options of experiments that left the code after version 8: dropped where they held
+    the default's value (the run is this code's model), refused naming the commit that has them otherwise."""
+    values = dict(saved)
+    for name, (kept, commit) in LEFT_LATER.items():
+        if name in values and values.pop(name) not in kept:
+            raise _refuse(f"the run was trained with {name}={saved[name]!r}", commit)
+    return values
 
 
 def is_earlier_config(saved: dict) -> bool:

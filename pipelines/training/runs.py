@@ -29,7 +29,7 @@ from dibrpp.io import DataError, atomic_path
 from ..model import pixel_normals
 from .config import ConfigError, TrainConfig
 from .earlier_runs import (RetiredError, earlier_model_config, earlier_state_dict, earlier_train_config,
-                           is_earlier_config)
+                           is_earlier_config, without_options_left_later)
 from ..model.encoder import MODEL_VERSION, Encoder, ModelConfig
 from ..model.model_input import encoder_input
 
@@ -74,6 +74,8 @@ def load_config(run: Path) -> TrainConfig:
     path = Path(run) / CONFIG
     try:
         saved = read_json(path, "run's configuration")  # from_dict refuses what is not a JSON object
+        if isinstance(saved, dict):
+            saved = without_options_left_later(saved)
         if isinstance(saved, dict) and is_earlier_config(saved):
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
         if isinstance(saved, dict) and "global_grid" not in saved:

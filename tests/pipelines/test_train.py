@@ -578,6 +578,20 @@ def test_a_run_written_before_the_house_change_reads_as_it_was_or_is_refused_nam
                                        **changes))
 
 
+def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refused_naming_its_commit(tmp_path):
+    from pipelines.training.runs import load_config
+
+    def run(name: str, weight: float) -> Path:
+        (tmp_path / name).mkdir()
+        saved = {**TrainConfig(iterations=6000).to_dict(), "w_albedo_variation": weight}
+        (tmp_path / name / "config.json").write_text(json.dumps(saved))
+        return tmp_path / name
+
+    assert load_config(run("default", 0.0)) == TrainConfig(iterations=6000)  # written while the option existed
+    with pytest.raises(DataError, match=r"w_albedo_variation=1\.0.*git checkout 84e9556"):
+        load_config(run("albedo-variation", 1.0))
+
+
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
     from pipelines.model.encoder import MODEL_VERSION, ModelConfig
     from pipelines.training.earlier_runs import earlier_model_config
