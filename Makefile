@@ -24,7 +24,7 @@ TRAIN_ARGS ?=
 .PHONY: setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
-	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~5.5 h)"
+	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~7.5 h)"
 	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~25 min)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
