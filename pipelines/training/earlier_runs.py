@@ -67,18 +67,24 @@ DROPPED = ("image_size", "snapshot_every")  # the data's size; how often snapsho
 SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"}  # under the probe head
 
 
-# training options of experiments that left the code later, the model unchanged: the value(s) under which the run
-# is the default model, and the last commit with the experiment's code
-LEFT_LATER = {"w_albedo_variation": ((0, 0.0), "84e9556")}
+# training options of experiments that left the code later, the model unchanged, by the last commit with their code:
+# the value(s) under which the run is the default model
+LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}}
+
+
+def _drop_retired(values: dict, retired: dict, commit: str = LAST_COMMIT) -> None:
+    """Pop ``retired``'s options from ``values`` where they hold a kept value; refuse the run otherwise."""
+    for name, kept in retired.items():
+        if name in values and (value := values.pop(name)) not in kept:
+            raise _refuse(f"the run was trained with {name}={value!r}", commit)
 
 
 def without_options_left_later(saved: dict) -> dict:
     """A run's config without the options of experiments that left the code after version 8: dropped where they held
     the default's value (the run is this code's model), refused naming the commit that has them otherwise."""
     values = dict(saved)
-    for name, (kept, commit) in LEFT_LATER.items():
-        if name in values and values.pop(name) not in kept:
-            raise _refuse(f"the run was trained with {name}={saved[name]!r}", commit)
+    for commit, retired in LEFT_LATER.items():
+        _drop_retired(values, retired, commit)
     return values
 
 
@@ -90,9 +96,7 @@ def earlier_train_config(saved: dict, trained_light_head: str | None) -> dict:
     """A version-8 run's config.json as this code's TrainConfig fields. ``trained_light_head``: the light head its
     checkpoint's model has (what an 'auto' gave the run), None where no checkpoint can be read."""
     values = dict(saved)
-    for name, kept in RETIRED_TRAINING.items():
-        if name in values and values.pop(name) not in kept:
-            raise _refuse(f"the run was trained with {name}={saved[name]!r}")
+    _drop_retired(values, RETIRED_TRAINING)
     for name in DROPPED:
         values.pop(name, None)
     shading = values.get("shading", "sg")
