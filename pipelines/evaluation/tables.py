@@ -62,6 +62,7 @@ def dataset_kind(r: dict) -> str | None:
 
 
 PUBLISHED = "published"  # the variant that is the paper's model as published: its rows sit beside the default's
+MODELS = (("", ()), (" as published", (PUBLISHED,)))  # (label, run-key suffix): every claim is judged on both
 
 
 def run_key(r: dict) -> tuple:
@@ -253,51 +254,59 @@ def _claims(t: dict, results: dict) -> None:
     def below(a, b):
         return None if a is None or b is None else a < b
 
+    def named(m, label):  # SH is DIB-R's baseline under either model's label
+        return METHOD_NAMES[m] + ("" if m == "sh" else label)
+
     kinds = {k[0] for k in results}
-    for ds in ("metallic", "glossy"):
-        if ds not in kinds:
-            continue
-        sh = metric((ds, "sh", 32, 0), "light_ldr")
-        for m in ("sg", "mc"):
-            claim("table1", f"{METHOD_NAMES[m]} predicts light better than SH on {ds} surfaces (LDR eq. 9)",
-                  below(metric((ds, m, 32, 0), "light_ldr"), sh))
-    for ds, table in (("metallic", "table1"), ("glossy", "table1"), ("diffuse", "tableC")):
-        runs = [r for k, r in results.items() if k[0] == ds and k[1] in ("mc", "sg", "sh") and k[2:] == (32, 0)]
-        for col, name in (("light_ldr", "LDR"), ("light_hdr", "HDR")):
-            scored = [r for r in runs if r.get(col) is not None and r.get(f"{col}_constant") is not None]
-            if scored:
-                best = min(scored, key=lambda r: r[col])
-                claim(table, f"on {ds} surfaces the best predicted light by eq. 9 on {name} maps "
-                      f"({METHOD_NAMES[best['shading']]}, {best[col]:.3f}) beats a constant env map "
-                      f"({best[col + '_constant']:.3f})", best[col] < best[col + "_constant"])
-    for ds in ("metallic", "glossy"):
-        if ds not in kinds:
-            continue
-        const = next((r["probe_metal_constant"] for k, r in results.items()
-                      if k[0] == ds and "probe_metal_constant" in r), None)
-        sh = metric((ds, "sh", 32, 0), "probe_metal")
-        for m in ("sg", "mc"):
-            v = metric((ds, m, 32, 0), "probe_metal")
-            claim("table1", f"(ours) {METHOD_NAMES[m]}'s light on {ds} lights a rough-metal sphere at least 30 % better "
-                  "(si-RMSE) than a constant map" + ("" if None in (v, const) else f" ({v:.3f} vs {const:.3f})"),
-                  None if None in (v, const) else v <= 0.7 * const)
-            claim("table1", f"(ours) {METHOD_NAMES[m]}'s light on {ds} lights a rough-metal sphere better than SH's",
-                  below(v, sh))
-    d = [metric(("diffuse", m, 32, 0), "light_ldr") for m in ("mc", "sg", "sh")]
-    claim("tableC", "on diffuse surfaces SH has the best light score (LDR eq. 9)", None if None in d else d[2] <= min(d[:2]))
+    for label, suffix in MODELS:  # each claim on the default, then on the published model
+        for ds in ("metallic", "glossy"):
+            if ds not in kinds:
+                continue
+            sh = metric((ds, "sh", 32, 0), "light_ldr")
+            for m in ("sg", "mc"):
+                claim("table1", f"{named(m, label)} predicts light better than SH on {ds} surfaces (LDR eq. 9)",
+                      below(metric((ds, m, 32, 0) + suffix, "light_ldr"), sh))
+        for ds, table in (("metallic", "table1"), ("glossy", "table1"), ("diffuse", "tableC")):
+            runs = [r for k, r in results.items() if k[0] == ds and k[1] in ("mc", "sg", "sh")
+                    and k[2:] == (32, 0) + suffix]
+            for col, metric_name in (("light_ldr", "LDR"), ("light_hdr", "HDR")):
+                scored = [r for r in runs if r.get(col) is not None and r.get(f"{col}_constant") is not None]
+                if scored:
+                    best = min(scored, key=lambda r: r[col])
+                    claim(table, f"on {ds} surfaces the best predicted light{label} by eq. 9 on {metric_name} maps "
+                          f"({named(best['shading'], label)}, {best[col]:.3f}) beats a constant env map "
+                          f"({best[col + '_constant']:.3f})", best[col] < best[col + "_constant"])
+        for ds in ("metallic", "glossy"):
+            if ds not in kinds:
+                continue
+            const = next((r["probe_metal_constant"] for k, r in results.items()
+                          if k[0] == ds and "probe_metal_constant" in r), None)
+            sh = metric((ds, "sh", 32, 0), "probe_metal")
+            for m in ("sg", "mc"):
+                v = metric((ds, m, 32, 0) + suffix, "probe_metal")
+                claim("table1", f"(ours) {named(m, label)}'s light on {ds} lights a rough-metal sphere at least 30 % "
+                      "better (si-RMSE) than a constant map" + ("" if None in (v, const) else f" ({v:.3f} vs {const:.3f})"),
+                      None if None in (v, const) else v <= 0.7 * const)
+                claim("table1", f"(ours) {named(m, label)}'s light on {ds} lights a rough-metal sphere better than SH's",
+                      below(v, sh))
+        d = [metric(("diffuse", m, 32, 0) + suffix, "light_ldr") for m in ("mc", "sg")] + \
+            [metric(("diffuse", "sh", 32, 0), "light_ldr")]
+        claim("tableC", f"on diffuse surfaces SH has a better light score than {named('sg', label)} and "
+              f"{named('mc', label)} (LDR eq. 9)", None if None in d else d[2] <= min(d[:2]))
     sg, shsg, sh = (metric(("glossy", m, 32, 0), "light_ldr") for m in ("sg", "sh-sg", "sh"))
     claim("tableD", "diffuse-only shading with SG light predicts light better than with SH (LDR eq. 9)", below(shsg, sh))
     claim("tableD", "but worse than DIB-R++ SG", below(sg, shsg))
     e = {k: metric(("glossy", "sg", k, 0), "light_ldr") for k in (4, 8, 16, 32)}
     claim("tableE", "fewer lobes give a higher light error (K = 4 worst; LDR eq. 9)",
           None if None in e.values() else e[4] >= max(e[8], e[16], e[32]))
-    seeds = [results.get(("glossy", "sg", 32, s)) for s in (0, 1, 2)]
-    if all(seeds) and all(r.get(c) is not None for r in seeds for c in COLUMNS):
-        spread = max(statistics.stdev([r[c] for r in seeds]) / max(statistics.mean([r[c] for r in seeds]), 1e-12)
-                     for c in COLUMNS)
-        claim("tableF", f"seeds have little effect (largest relative std. dev. {spread:.1%})", spread < 0.1)
-    else:
-        claim("tableF", "seeds have little effect", None)
+    for label, suffix in MODELS:
+        seeds = [results.get(("glossy", "sg", 32, s) + suffix) for s in (0, 1, 2)]
+        if all(seeds) and all(r.get(c) is not None for r in seeds for c in COLUMNS):
+            spread = max(statistics.stdev([r[c] for r in seeds]) / max(statistics.mean([r[c] for r in seeds]), 1e-12)
+                         for c in COLUMNS)
+            claim("tableF", f"seeds have little effect{label} (largest relative std. dev. {spread:.1%})", spread < 0.1)
+        else:
+            claim("tableF", f"seeds have little effect{label}", None)
 
 
 def row_cells(r: dict) -> list[str]:
