@@ -293,13 +293,6 @@ def _claims(t: dict, results: dict) -> None:
             [metric(("diffuse", "sh", 32, 0), "light_ldr")]
         claim("tableC", f"on diffuse surfaces SH has a better light score than {named('sg', label)} and "
               f"{named('mc', label)} (LDR eq. 9)", None if None in d else d[2] <= min(d[:2]))
-    sg, shsg, sh = (metric(("glossy", m, 32, 0), "light_ldr") for m in ("sg", "sh-sg", "sh"))
-    claim("tableD", "diffuse-only shading with SG light predicts light better than with SH (LDR eq. 9)", below(shsg, sh))
-    claim("tableD", "but worse than DIB-R++ SG", below(sg, shsg))
-    e = {k: metric(("glossy", "sg", k, 0), "light_ldr") for k in (4, 8, 16, 32)}
-    claim("tableE", "fewer lobes give a higher light error (K = 4 worst; LDR eq. 9)",
-          None if None in e.values() else e[4] >= max(e[8], e[16], e[32]))
-    for label, suffix in MODELS:
         seeds = [results.get(("glossy", "sg", 32, s) + suffix) for s in (0, 1, 2)]
         if all(seeds) and all(r.get(c) is not None for r in seeds for c in COLUMNS):
             spread = max(statistics.stdev([r[c] for r in seeds]) / max(statistics.mean([r[c] for r in seeds]), 1e-12)
@@ -307,6 +300,12 @@ def _claims(t: dict, results: dict) -> None:
             claim("tableF", f"seeds have little effect{label} (largest relative std. dev. {spread:.1%})", spread < 0.1)
         else:
             claim("tableF", f"seeds have little effect{label}", None)
+    sg, shsg, sh = (metric(("glossy", m, 32, 0), "light_ldr") for m in ("sg", "sh-sg", "sh"))
+    claim("tableD", "diffuse-only shading with SG light predicts light better than with SH (LDR eq. 9)", below(shsg, sh))
+    claim("tableD", "but worse than DIB-R++ SG", below(sg, shsg))
+    e = {k: metric(("glossy", "sg", k, 0), "light_ldr") for k in (4, 8, 16, 32)}
+    claim("tableE", "fewer lobes give a higher light error (K = 4 worst; LDR eq. 9)",
+          None if None in e.values() else e[4] >= max(e[8], e[16], e[32]))
 
 
 def row_cells(r: dict) -> list[str]:
