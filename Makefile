@@ -115,7 +115,7 @@ train-ablations: $(VENV)/.installed
 	$(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sh-sg --seed 0 --out $(RUNS)/glossy/sh-sg-seed0 --resume $(TRAIN_ARGS)
 	@$(MAKE) --no-print-directory train-variant-runs VARIANT_KINDS=paper
 
-# The named variants of pipelines/variants.py (ablations of our model's choices and diagnostics that read the GT;
+# The named variants of pipelines/training/variants.py (ablations of our model's choices and diagnostics that read the GT;
 # `python -m pipelines.train --list-variants`), each into runs/<dataset>/sg-<variant>-seed<s>.
 VARIANT_KINDS ?= ablation,diagnostic
 train-variants: $(VENV)/.installed

@@ -16,6 +16,7 @@ from collections import Counter
 from pathlib import Path
 
 from dibrpp.formatting import markdown_table, write_csv
+from pipelines.training.variants import VARIANTS
 
 PAPER_KINDS = ("metallic", "glossy", "diffuse")  # the paper's sets; a manifest's "dataset" names one of them
 COLUMNS = ("image_whole", "iou", "light_ldr", "texture")  # ours, each defined like the paper's column beside it
@@ -104,16 +105,25 @@ def paper_sets(results: list[dict]) -> dict[str, str]:
 
 
 def paper_results(results: list[dict]) -> dict:
-    """{run_key: result} of the default model's and the published model's results on the sets the tables show (the
-    other variants, ablations of the model, are not paper rows)."""
+    """{run_key: result} of the default model's, the published model's and Table E's lobe counts' results on the
+    sets the tables show (the other variants, ablations of the model, are not paper rows)."""
     sets = paper_sets(results)
-    return {run_key(r): r for r in results if r.get("variant", "") in ("", PUBLISHED) and dataset_kind(r)
+    return {run_key(r): r for r in results if is_paper_row(r.get("variant", "")) and dataset_kind(r)
             and dataset_kind(r) in sets and sets[dataset_kind(r)] == r["dataset"]}
 
 
+def is_paper_row(variant: str) -> bool:
+    """The default (no variant), the published model, and the variants the paper's own tables have (K lobes)."""
+    return variant in ("", PUBLISHED) or (variant in VARIANTS and VARIANTS[variant].kind == "paper")
+
+
 def format_value(v, spec: str = ".3f") -> str:
-    """Table cell: 3 decimals by default, a dash where there is no value (None or NaN)."""
-    return "—" if v is None or v != v else format(v, spec)
+    """Table cell: 3 decimals by default, a dash where there is no value (None or NaN); a value too small for the
+    decimals (Table F's variances) in scientific notation, not as a zero."""
+    if v is None or v != v:
+        return "—"
+    text = format(v, spec)
+    return format(v, ".1e") if v != 0 and float(text) == 0 else text
 
 
 def split_phrase(results) -> str:
