@@ -72,7 +72,7 @@ GLOSSY = ("--dataset", "glossy")
 POINTS = [
     Point("base", "base", 0, "glossy", GLOSSY, "glossy/sg-seed0", main=True),
     *(Point(f"res{r}", "resolution", r, f"glossy-{r}", (*GLOSSY, "--resolution", str(r)), f"res{r}",
-            gpu=r > 128) for r in (32, 128, 256)),
+            gpu=r > 128) for r in (16, 32, 128, 256)),
     *(Point(f"its{n}", "iterations", n, "glossy", GLOSSY, f"its{n}", ("--iterations", str(n)))
       for n in (750, 3000, 6000, 12000, 24000)),
     *(Point(f"cars{n}", "cars", n, "glossy", GLOSSY, f"cars{n}", ("--train-objects", str(n)))
