@@ -85,15 +85,29 @@ def _dataset_name(run: Path, dataset: str | None) -> str | None:
         return None
 
 
+def _written_for_another_run(path: Path, run: Path) -> bool:
+    """Whether ``path`` holds the result of a run in another folder (an earlier call's runs/a/sg-seed0 where this
+    one evaluates runs/b/sg-seed0 into the same --out)."""
+    try:
+        before = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    other = before.get("run") if isinstance(before, dict) else None
+    return isinstance(other, str) and Path(other).resolve() != run.resolve()
+
+
 def result_paths(runs: list[Path], root: Path, out: Path, dataset: str | None) -> dict[Path, Path]:
     """Where each run's result goes: ``out/<dataset>/<run folder name>.json``; where two runs evaluated on one
     dataset share a folder name (runs/a/sg-seed0, runs/b/sg-seed0), their path below ``root`` joined by "__"
-    (``a__sg-seed0.json``). A DataError if two runs would still write one file."""
+    (``a__sg-seed0.json``), and where an earlier call wrote that file for a run in another folder, this run's
+    parent folder and name so joined. A DataError if two runs would still write one file."""
     datasets = {run: _dataset_name(run, dataset) for run in runs}
     shared = Counter((datasets[run], run.name) for run in runs)
     paths = {}
     for run in runs:
         name = run.name if shared[datasets[run], run.name] == 1 else "__".join(run.relative_to(root).parts)
+        if _written_for_another_run(out / str(datasets[run]) / f"{name}.json", run):
+            name = f"{run.parent.name}__{run.name}"  # an earlier call's run of the same name: keep its result
         paths[run] = out / str(datasets[run]) / f"{name}.json"
     clash = [p for p, n in Counter(paths[run] for run in runs if datasets[run]).items() if n > 1]
     if clash:

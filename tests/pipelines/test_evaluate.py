@@ -137,6 +137,18 @@ def test_runs_that_share_a_folder_name_keep_their_results_apart(tmp_path, capsys
     assert not written and err[-1].startswith("error: --runs") and "a__sg-seed0.json" in err[-1]
 
 
+def test_runs_of_one_name_evaluated_in_separate_calls_into_one_out_keep_their_results_apart(tmp_path):
+    from pipelines.training.runs import find_runs
+
+    runs, out = tmp_path / "runs", tmp_path / "eval"
+    first, second = (_fake_run(runs / p / "sg-seed0", "data/glossy") for p in ("glossy", "glossy-maps200"))
+    (out / "other").mkdir(parents=True)  # the first call's result, on --dataset data/other
+    (out / "other" / "sg-seed0.json").write_text(json.dumps({"run": str(first)}))
+    assert evaluate.result_paths(find_runs(first), first, out, "data/other") == {first: out / "other" / "sg-seed0.json"}
+    assert evaluate.result_paths(find_runs(second), second, out, "data/other") == {
+        second: out / "other" / "glossy-maps200__sg-seed0.json"}
+
+
 def _fake_result(run, path, key, args):
     """What evaluate_and_write writes, without evaluating: a result with made-up metrics."""
     r = dict(run=str(run), dataset=path.parent.name, dataset_kind="glossy", trained_on=path.parent.name,
