@@ -92,6 +92,14 @@ POINTS = [
     # and at the best glossy length, beside make train-metallic's 1500-iteration run
     Point("metallic6000", "diagnostic", 6000, "metallic", ("--dataset", "metallic"), "metallic6000",
           ("--iterations", "6000")),
+    # the light head told the GT map (a diagnostic variant): what holds it on unseen maps, the input's size, the
+    # number of maps or the training's length (make train-variants' run is the 64², 32-map, 1500-iteration one)
+    *(Point(name, "diagnostic", 0, data, flags, name, ("--variant", "light-supervised-map", *train))
+      for name, data, flags, train in (
+          ("res128-light-supervised-map", "glossy-128", (*GLOSSY, "--resolution", "128"), ()),
+          ("res128-maps160-light-supervised-map", "glossy-maps200-128",
+           (*GLOSSY, "--num-envmaps", "200", "--resolution", "128"), ()),
+          ("its6000-light-supervised-map", "glossy", GLOSSY, ("--iterations", "6000")))),
 ]
 BY_NAME = {p.name: p for p in POINTS}
 
@@ -277,11 +285,15 @@ def report(folders: Folders) -> None:
 
 def list_points(folders: Folders) -> None:
     tests, trains = evaluated(folders.out, "test"), evaluated(folders.out, "train")
+    rows = []
     for p in POINTS:
         run = folders.run(p)
         state = ("evaluated" if run.resolve() in tests and run.resolve() in trains else
                  "trained" if (run / "summary.json").exists() else "started" if is_run(run) else "-")
-        print(f"{p.name:12s} {p.axis:10s} {p.dataset:15s} {str(run):36s} {'GPU ' if p.gpu else ''}{state}")
+        rows.append((p.name, p.axis, p.dataset, str(run), f"{'GPU ' if p.gpu else ''}{state}"))
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    for r in rows:
+        print(" ".join(c.ljust(w) for c, w in zip(r, widths)), r[4])
 
 
 def main(argv=None) -> int:
