@@ -16,7 +16,7 @@ On-disk format (one folder per dataset; every path comes from :class:`datagen.la
     samples/obj_0003_env_0007/view_05.json        camera: world_to_camera (4x4), fov (rad), resolution, azimuth, elevation, distance
     samples/obj_0003_env_0007/sample.json         object, env map, material, seeds, files + sizes, timing (done marker)
     preview.png                                   contact sheet
-    timing/shard_0_of_1.json                      wall/Cycles time of a run
+    timing/shard_0_of_1.json                      wall/Cycles time of the last run that rendered
     .datagen_shard_0_of_1.lock                    held while a run writes the folder (datagen.locking)
 
 Every file is written atomically (temp + rename) and a folder counts as finished only once its json
@@ -79,7 +79,9 @@ def generate(cfg: Config, out, workers: int = 1, shard: tuple[int, int] = (0, 1)
         stats.update(_render_samples(out, cfg, mine, run))
         stats.update(_summary(stats, time.perf_counter() - t_start, workers, threads, shard),
                      cycles_device=cycles_device)
-        write_json(DatasetLayout(out).timing(si, sn), stats)
+        timing = DatasetLayout(out).timing(si, sn)
+        if stats["rendered_views"] or not timing.exists():  # a rerun that finds the shard done keeps its record
+            write_json(timing, stats)
         if preview and _all_samples_finished(out, p):
             from .preview import contact_sheet
 

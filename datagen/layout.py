@@ -16,7 +16,7 @@ The tree (one folder per dataset)::
 
     manifest.json                                 generator version, config, seeds, splits, camera, ...
     preview.png                                   contact sheet
-    timing/shard_0_of_1.json                      wall / Cycles time of a run
+    timing/shard_0_of_1.json                      wall / Cycles time of the last run that rendered
     .datagen_shard_0_of_1.lock, .datagen_manifest.lock   held by a running datagen (see datagen.locking)
     envmaps/env_0007.exr | .png | .json           linear HDR equirect map, its preview, its record (done marker)
     objects/obj_0003/mesh.npz | mesh.obj | mesh.mtl | texture.png | object.json

@@ -192,9 +192,11 @@ def test_resume_after_crash_gives_identical_files(dataset, tmp_path):
     (samples[0] / ".view_02.exr.tmp123.exr").unlink()
     assert _binary_files(out) == _binary_files(ref)
     assert _json_without_timing(out) == _json_without_timing(ref)
-    # A rerun of a finished dataset renders nothing.
+    # A rerun of a finished dataset renders nothing, and keeps the timing of the run that rendered.
+    timing = (out / "timing" / "shard_0_of_1.json").read_text()
     again = generate(tiny_config(), out, workers=1, progress=False, preview=False)
     assert again["rendered_views"] == 0 and again["skipped_samples"] == 2
+    assert (out / "timing" / "shard_0_of_1.json").read_text() == timing
 
 
 def test_corrupt_sample_and_changed_settings_are_clear_errors(dataset, tmp_path):
