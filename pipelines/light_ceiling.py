@@ -13,10 +13,10 @@ views; docs/scale.md reads it along the input's resolution.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import torch
+from tqdm import tqdm
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp import Material, Renderer
@@ -76,8 +76,7 @@ def ceiling(dataset: str, split: str = "test", stride: int = 24, steps: int = 10
     views = strided_views(ds, stride)[:max_views]
     renderer = Renderer("sg", compile=True)  # the training renderer's fused SG shading
     fitted, constant, rows = {}, {}, []
-    start = time.time()
-    for n, i in enumerate(views):
+    for n, i in enumerate(tqdm(views, desc=f"fitting {Path(dataset).name}", unit="view", file=sys.stderr)):
         b = collate([ds[i]])
         rgba, cams, env = b["image"][:, 0], b["cameras"], b["envmap"]
         obj = int(b["object"][0])
@@ -94,7 +93,6 @@ def ceiling(dataset: str, split: str = "test", stride: int = 24, steps: int = 10
             constant.setdefault(k.removesuffix("_constant"), []).append(v)
         if n < figure_views:
             rows.append([display_image(rgba[0, ..., :3]), tonemap_envmap(env[0]), tonemap_envmap(table[0])])
-        print(f"view {n + 1}/{len(views)}: {time.time() - start:.0f} s", file=sys.stderr, flush=True)
     return {k: torch.cat(v) for k, v in fitted.items()}, {k: torch.cat(v) for k, v in constant.items()}, rows
 
 
