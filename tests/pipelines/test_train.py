@@ -527,21 +527,22 @@ HOUSE_REFERENCE = Path(__file__).parent / "data" / "default_models_before_the_ho
 @pytest.mark.parametrize("shading", ["sg", "mc", "sh", "sh-sg"])
 def test_the_default_models_train_as_they_did_before_the_retired_experiments_left(tiny_glossy, tmp_path, shading):
     """Removing the losing experiments' branches left the default path as it was: each default model trained for 6
-    iterations at one thread ends where it ended before (measured equal bit for bit on the development machine; the
-    tolerance admits another CPU's or process's rounding, far below what any change of the model or the objective
-    moves)."""
+    iterations at one thread has the architecture, the loss curve and the weight norms it had before.
+
+    Compared only in quantities that another CPU's rounding cannot move past the tolerance: ATen's three kernel sets
+    (ATEN_CPU_CAPABILITY=default, avx2, avx512, each with its own inductor cache) moved the losses by at most 1.5e-4
+    relative and each tensor's norm by at most 0.7 %, while a tensor's sum (near-zero weights that six Adam steps
+    push either way) moved by up to 8 %. A change of the model or the objective moves the losses by far more."""
     torch._dynamo.reset()  # compile afresh, as a new process does: graphs compiled by earlier tests are not reused
     reference = json.loads(HOUSE_REFERENCE.read_text())[shading]
     run = tmp_path / shading
     train(config(tiny_glossy, run, shading=shading, iterations=6, checkpoint_every=3, lobes=4), progress=False)
     weights = torch.load(run / "checkpoint.pt", weights_only=True)["model"]
-    assert set(weights) == set(reference["sums"]) - {"texel_solid_angle"}  # a buffer only the texel probe read
-    for name, value in weights.items():
-        # rel 1e-3: a clean clone under pytest-xdist ended up to 3e-4 off in a tensor's sum (another process's
-        # state); a change of the model or the objective moves them by far more
-        assert float(value.double().sum()) == pytest.approx(reference["sums"][name], rel=1e-3, abs=1e-6), name
+    assert {name: list(value.shape) for name, value in weights.items()} == reference["shapes"]
     losses = lambda text: [float(row.split(",")[1]) for row in text.splitlines()[1:]]  # noqa: E731 (total per row)
     assert losses((run / "log.csv").read_text()) == pytest.approx(losses(reference["log"]), rel=1e-3)
+    for name, value in weights.items():
+        assert float(value.double().norm()) == pytest.approx(reference["norms"][name], rel=2e-2, abs=1e-6), name
 
 
 def _version_8_run(folder: Path, **changes) -> Path:
