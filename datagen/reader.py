@@ -18,6 +18,7 @@ which imports neither bpy nor torch; ``ds.camera_setup`` is the orbit camera of 
 from __future__ import annotations
 
 import json
+import zipfile
 from collections import OrderedDict
 from pathlib import Path
 
@@ -156,7 +157,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
             try:
                 with np.load(p) as m:
                     arrays = {k: m[k] for k in ("verts", "faces", "uvs", "face_uvs")}
-            except (OSError, KeyError, ValueError) as e:
+            except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as e:
                 raise DataError(f"{p}: unreadable mesh ({e})") from e
             try:
                 return Meshes(torch.from_numpy(arrays["verts"]).float(), torch.from_numpy(arrays["faces"]),

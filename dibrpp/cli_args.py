@@ -70,6 +70,14 @@ def finite_float(text: str) -> float:
     return _number(text, float)
 
 
+def float_in(lo: float, hi: float, open_low: bool = False):
+    """An argument type: a number in [lo, hi] (or (lo, hi] with ``open_low``; the error names both bounds)."""
+    def parse(text: str) -> float:
+        ok = (lambda v: lo < v <= hi) if open_low else (lambda v: lo <= v <= hi)
+        return _checked(text, float, ok, f"a number in {'(' if open_low else '['}{lo:g}, {hi:g}]")
+    return parse
+
+
 def non_negative_float(text: str) -> float:
     return _checked(text, float, lambda v: v >= 0, "a number >= 0")
 

@@ -118,7 +118,7 @@ def sun_pixels(radiance: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     lum = (radiance * radiance.new_tensor(LUMINANCE_WEIGHTS)).sum(-1)
     covered = weight > 0.5
     brightest = torch.where(covered, lum, torch.zeros_like(lum)).amax(1, keepdim=True)
-    median = torch.stack([v[m].median() if m.any() else v.new_tensor(float("inf")) for v, m in zip(lum, covered)])
+    median = torch.stack([metrics.median(v[m]) if m.any() else v.new_tensor(float("inf")) for v, m in zip(lum, covered)])
     shows_sun = brightest[:, 0] >= SUN_VIEW_CONTRAST * median
     share = torch.relu(lum / brightest.clamp_min(1e-6) - SUN_PIXEL_SHARE)
     return weight * share * shows_sun[:, None]
@@ -240,30 +240,30 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None,
     header = ["sunny views of each test map: median (≤ 25°)"]
     for m in maps.unique().tolist():
         on = maps == m
-        header.append(f"map {m}: light {float(elevations[on].median()):.0f}° high, {int(on.sum())} views")
+        header.append(f"map {m}: light {float(metrics.median(elevations[on])):.0f}° high, {int(on.sum())} views")
         for row, v in zip(by_map, errors.values()):
             v = v[on]
-            row.append(f"{v.median():.1f}° ({100 * (v <= 25).float().mean():.0f} %)")
+            row.append(f"{metrics.median(v):.1f}° ({100 * (v <= 25).float().mean():.0f} %)")
         for row, v in zip(by_map[len(errors):], normals[on].T):
-            row.append(f"{v.nanmedian():.1f}° ({int((~v.isnan()).sum())} views)")
+            row.append(f"{metrics.median(v):.1f}° ({int((~v.isnan()).sum())} views)")
     for k, v in errors.items():
         if not len(v):
             views = "views" if split == "all" else f"{split} views"
             raise DataError(f"{run}: none of the {views} of {dataset} has a dominant light (a sun, a lamp) to place; "
                             "give a set lit by suns with --dataset DIR --split all (e.g. make data-metallic-sunny)")
-        lift = f"{lifts[k].median():+.1f}" if k in lifts else ""  # the consensus rows are not per view
-        rows.append([k, f"{v.median():.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
+        lift = f"{metrics.median(lifts[k]):+.1f}" if k in lifts else ""  # the consensus rows are not per view
+        rows.append([k, f"{metrics.median(v):.1f}", f"{100 * (v <= 25).float().mean():.0f} %",
                      f"{100 * (v <= 45).float().mean():.0f} %", lift])
     for name, v, mean in zip(normal_rows[:2], normals.T, averaged.T):
-        rows.append([f"({name}: {float(v.nanmedian()):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
-                     f"averaged over its views: {float(mean.nanmedian()):.1f})", "", "", "", ""])
-    rows.append([f"({normal_rows[2]}: {float(normals[:, 2].nanmedian()):.1f})", "", "", "", ""])
+        rows.append([f"({name}: {float(metrics.median(v)):.1f}, {int((~v.isnan()).sum())} views; each object's shape "
+                     f"averaged over its views: {float(metrics.median(mean)):.1f})", "", "", "", ""])
+    rows.append([f"({normal_rows[2]}: {float(metrics.median(normals[:, 2])):.1f})", "", "", "", ""])
     if pixel_normals:
         own = torch.cat(pixel_normals)
-        rows.append([f"(the probe's pixel normals' error (°): all pixels {float(own[:, 0].nanmedian()):.1f}, the sun's "
-                     f"pixels {float(own[:, 1].nanmedian()):.1f})", "", "", "", ""])
+        rows.append([f"(the probe's pixel normals' error (°): all pixels {float(metrics.median(own[:, 0])):.1f}, the sun's "
+                     f"pixels {float(metrics.median(own[:, 1])):.1f})", "", "", "", ""])
     if shares:
-        rows.append(["(the sun's median share of the light's power)", f"{float(torch.cat(shares).median()):.3f}", "", "", ""])
+        rows.append(["(the sun's median share of the light's power)", f"{float(metrics.median(torch.cat(shares))):.3f}", "", "", ""])
     if probes:
         rows.append([f"(rough-metal probe si-RMSE, all {split} views read: " + ", ".join(
             f"{k} {float(torch.cat(v).mean()):.3f}" for k, v in probes.items()) + ")", "", "", "", ""])
@@ -286,8 +286,8 @@ def by_elevation(errors: dict, lifts: dict, elevations: torch.Tensor) -> tuple[l
             if not on.any():
                 row.append("")
                 continue
-            lift = f", {lifts[k][on].median():+.1f}°" if k in lifts else ""
-            row.append(f"{v[on].median():.1f}° ({100 * (v[on] <= 25).float().mean():.0f} %{lift})")
+            lift = f", {metrics.median(lifts[k][on]):+.1f}°" if k in lifts else ""
+            row.append(f"{metrics.median(v[on]):.1f}° ({100 * (v[on] <= 25).float().mean():.0f} %{lift})")
     return header, rows
 
 

@@ -173,15 +173,15 @@ def diagnose(dataset: str, objects: int, steps: int, signals=SIGNALS, sunny: boo
                 if sun is not None:  # the normals where the GT surface mirrors the sun
                     sun_deg = metrics.normal_errors(meshes, [ds.mesh(obj)] * len(images), cameras, images,
                                                     sun.expand(len(images), 3))[:, 1]
-                    at_sun[signal].append(sun_deg.nanmedian())
+                    at_sun[signal].append(metrics.median(sun_deg))
             deg, share = metrics.normal_error_deg(pred.rgb[..., :3], pred.alpha, gt.rgb[..., :3], gt.alpha)
-            errors[signal].append(deg.nanmedian())
+            errors[signal].append(metrics.median(deg))
             within[signal].append(share.nanmean())
-            print(f"object {obj} ({k + 1}/{len(samples)}), {signal}: normals {float(deg.nanmedian()):.1f} deg "
+            print(f"object {obj} ({k + 1}/{len(samples)}), {signal}: normals {float(metrics.median(deg)):.1f} deg "
                   f"({time.time() - start:.0f} s)", file=sys.stderr, flush=True)
     mean_l1 = {k: f"{sum(v) / len(v):.3f}" if v else "" for k, v in reached.items()}
-    sun_col = {s: f"{float(torch.stack(v).nanmedian()):.1f} ({len(v)})" if v else "" for s, v in at_sun.items()}
-    rows = [[s, f"{float(torch.stack(errors[s]).median()):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}",
+    sun_col = {s: f"{float(metrics.median(torch.stack(v))):.1f} ({len(v)})" if v else "" for s, v in at_sun.items()}
+    rows = [[s, f"{float(metrics.median(torch.stack(errors[s]))):.1f}", f"{float(torch.stack(within[s]).mean()):.0%}",
              sun_col[s], mean_l1[s]] for s in signals]
     if reached["gt"]:
         gt_at_sun = "0" if at_sun[signals[0]] else ""

@@ -46,8 +46,8 @@ def diagnose(run: Path, stride: int = 3) -> dict:
     if not pred:
         raise DataError(f"{run}: no test view of {loaded.config.dataset} has a sky brighter and bluer than its ground")
     pred, gt = torch.cat(pred), torch.cat(gt)
-    return {"views": len(pred), "ratio": float(pred[:, 0].median()), "ratio_gt": float(gt[:, 0].median()),
-            "bluer": float(pred[:, 1].median()), "bluer_gt": float(gt[:, 1].median()),
+    return {"views": len(pred), "ratio": float(metrics.median(pred[:, 0])), "ratio_gt": float(metrics.median(gt[:, 0])),
+            "bluer": float(metrics.median(pred[:, 1])), "bluer_gt": float(metrics.median(gt[:, 1])),
             "brighter_share": float((pred[:, 0] >= metrics.SKY_BRIGHTER).float().mean()),
             "bluer_share": float((pred[:, 1] >= metrics.SKY_BLUER).float().mean()),
             "sky_share": float(metrics.has_sky(pred[:, 0], pred[:, 1]).float().mean())}

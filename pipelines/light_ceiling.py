@@ -107,8 +107,8 @@ def summary(fitted: dict, constant: dict) -> list[list[str]]:
     if sunny.any():
         f, c = fitted["direction_deg"][sunny], constant["direction_deg"][sunny]
         rows.append([f"direction_deg, median (≤ 25°), {int(sunny.sum())} sunny views",
-                     f"{f.median():.1f} ({100 * (f <= 25).float().mean():.0f} %)",
-                     f"{c.median():.1f} ({100 * (c <= 25).float().mean():.0f} %)", ""])
+                     f"{metrics.median(f):.1f} ({100 * (f <= 25).float().mean():.0f} %)",
+                     f"{metrics.median(c):.1f} ({100 * (c <= 25).float().mean():.0f} %)", ""])
     return rows
 
 

@@ -9,13 +9,23 @@ Writes into --out: ``mesh.obj`` + ``mesh.mtl`` + ``texture.png`` (opens textured
 The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits; or a linear EXR) needs an alpha
 channel (the object's mask), as the datasets have; an image without one is accepted only with
 ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
-foreground extraction for renders on a flat background). Any size from 8 x 8 pixels is padded to a square
-(transparent borders) and resized to the model's. Its radiance must be finite, non-negative and at most
+foreground extraction for renders on a flat background), or with ``--mask FILE`` (a grey or RGBA image of the same
+size: white, or opaque, is the object). Any size from 8 x 8 pixels is taken: by default (``--framing object``) the
+object is cropped and centred the way the training views frame it (its box spans the share of the frame it spans
+there, ``object_fill`` in the run's ``camera.json``); ``--framing as-is`` pads the image to a square as it is. Then
+it is resized to the model's input. Its radiance must be finite, non-negative and at most
 exp(12) ~ 1.6e5, the brightest light the model predicts (a scaled EXR is refused, not read as a brighter sun).
 Give a linear EXR where you have one: the model reads the input's full range, and a sun's reflection that an
 8-bit picture clips at 1 is where it finds the sun (docs/experiments.md, entry 13).
-The input camera is taken to be the training set-up (distance, elevation and field of view of the
-training dataset, stored with the run in ``camera.json``) at ``--azimuth`` degrees.
+The input camera is an orbit camera looking at the object's centre: ``--azimuth``, ``--elevation``, ``--fov`` and
+``--distance``, each the training set-up's (``camera.json``) unless given. The elevation sets which way is up in the
+predicted light; the field of view and distance set the perspective the shape is read with (with ``--framing
+object`` the crop keeps the object's size in the frame as in training, whatever the photo's zoom).
+
+What a photo can give: the model has seen procedural cars (or heads) of its dataset, on their own, from one
+elevation and distance, under its env maps. A photo of a similar object, cut out, gives a shape, an albedo and a
+light of that kind; an 8-bit photo clips the highlights the light is read from, so an EXR of the view places the
+light better; other objects, clutter or shadows on the ground are outside what it learnt.
 """
 from __future__ import annotations
 
@@ -29,11 +39,11 @@ import numpy as np
 import torch
 
 from dibrpp import Cameras
-from dibrpp.cli_args import (Parser, check_output_folder, finite_float, int_in, non_negative_float, positive_int,
-                             unit_rgb)
+from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in, int_in, non_negative_float, unit_rgb)
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
+from .model import framing
 from .model.model_input import MAX_LOG_RADIANCE, encoder_input
 from .training.refine import MAX_STEPS, refine_light
 from .training.runs import load_camera, load_run, make_renderer, run_folder
@@ -43,6 +53,8 @@ MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
 # brighter pixels, so such an image is scaled (or corrupt), not lit by a brighter sun.
 MAX_RADIANCE = math.exp(MAX_LOG_RADIANCE)
 LONG_REFINEMENT_S = 30.0  # a refinement expected to take longer is announced with its estimate
+MAX_VIEWS, MAX_SPP = 72, 4096  # novel views (every 5 degrees) and their MC samples: more only fills the memory
+FILL_WARNING = 1.5  # an object spanning this many times more (or less) of the frame than in training is warned of
 
 
 def say(message: str) -> None:
@@ -50,9 +62,9 @@ def say(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def read_input(path, background: tuple[float, float, float] | None, tolerance: float) -> torch.Tensor:
+def read_input(path, background: tuple[float, float, float] | None, tolerance: float, mask=None) -> torch.Tensor:
     """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it (see the module
-    doc for RGB inputs)."""
+    doc for RGB inputs and ``mask``)."""
     if Path(path).is_dir():
         raise DataError(f"--image {path}: is a folder; --image takes one image file (PNG, JPEG, TIFF or EXR)")
     img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
@@ -61,11 +73,31 @@ def read_input(path, background: tuple[float, float, float] | None, tolerance: f
         raise DataError(f"{path}: {width} x {height} pixels is too small; give an image of at least "
                         f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object")
     check_radiance(path, img[..., :3])
-    if img.shape[-1] == 3:
+    if mask is not None:
+        img = torch.cat([img[..., :3], read_mask(mask, (height, width))], -1)
+    elif img.shape[-1] == 3:
         img = torch.cat([img, foreground_mask(path, img, background, tolerance)], -1)
+    elif background is not None:
+        raise DataError(f"{path}: has an alpha channel, which is the object's mask; --background cuts a mask out of "
+                        "an image without one: drop --background (or the alpha)")
+    alpha = img[..., 3]
+    if not (torch.isfinite(alpha).all() and alpha.min() >= 0 and alpha.max() <= 1 + 1e-3):
+        raise DataError(f"{path}: alpha outside [0, 1] (min {float(alpha.min()):.3g}, max {float(alpha.max()):.3g}); "
+                        "alpha is the object's coverage: give a straight (not scaled) alpha")
+    img[..., 3] = alpha.clamp(0, 1)
     if img[..., 3].max() <= 0:
         raise DataError(f"{path}: the alpha channel is empty (no object)")
     return img
+
+
+def read_mask(path, size: tuple[int, int]) -> torch.Tensor:
+    """(H, W, 1) the object's coverage from a mask image: its alpha where it has one, else its grey level."""
+    mask = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=False))).float()
+    if tuple(mask.shape[:2]) != size:
+        raise DataError(f"--mask {path}: {mask.shape[1]} x {mask.shape[0]} pixels, the image {size[1]} x {size[0]}; "
+                        "give a mask of the image's size")
+    coverage = mask[..., 3] if mask.shape[-1] == 4 else mask[..., :3].mean(-1)
+    return coverage.clamp(0, 1).unsqueeze(-1)
 
 
 def check_radiance(path, rgb: torch.Tensor) -> None:
@@ -108,6 +140,20 @@ def pad_to_square(img: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
 
 
+def frame_input(path, rgba: torch.Tensor, trained_fill: float | None, mode: str) -> torch.Tensor:
+    """The image framed for the model (``--framing``): re-framed as the training views are, or as it is (with a
+    warning when its object spans a very different share of the frame)."""
+    if mode == "object" and trained_fill:
+        return framing.reframe(rgba, trained_fill)
+    if mode == "object":
+        say(f"note: the run records no object_fill (trained before it was recorded); {path} is used as framed")
+    fill = framing.image_fill(rgba[..., 3])
+    if trained_fill and not 1 / FILL_WARNING <= fill / trained_fill <= FILL_WARNING:
+        say(f"warning: the object spans {fill:.0%} of {path}'s frame against {trained_fill:.0%} in the training views; "
+            "the shape is read at the wrong scale: use --framing object (the default)")
+    return rgba
+
+
 def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Tensor) -> torch.Tensor:
     """Vertex position per UV index (the template's seam splits vertices in UV space only)."""
     out = torch.zeros(int(face_uvs.max()) + 1, 3, dtype=verts.dtype)
@@ -117,16 +163,20 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
-            views: int = 4, spp: int = 64, refine_steps: int = 0, device: str = "cpu") -> dict:
+            views: int = 4, spp: int = 64, refine_steps: int = 0, device: str = "cpu", elevation: float | None = None,
+            fov: float | None = None, distance: float | None = None, framing_mode: str = "object", mask=None) -> dict:
     check_output_folder("--out", out)
-    image_rgba = read_input(image, background, tolerance)  # a bad image is refused before the model loads
+    image_rgba = read_input(image, background, tolerance, mask)  # a bad image is refused before the model loads
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model.to(device)
     size = model.config.image_size  # the side of the images the run trained on
-    setup = load_camera(run)
+    trained = load_camera(run)
+    setup = dict(distance=trained["distance"] if distance is None else distance,
+                 elevation_deg=trained["elevation_deg"] if elevation is None else elevation,
+                 fov_deg=trained["fov_deg"] if fov is None else fov)
     orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
-    rgba = resize_input(image_rgba, size)
+    rgba = resize_input(frame_input(image, image_rgba, trained.get("object_fill"), framing_mode), size)
     if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
         say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
             "the full range and places the light best from a linear EXR of the same view")
@@ -149,7 +199,8 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     write_exr(out / "envmap.exr", light.to_envmap(64, 128).image[0])
     material = dict(roughness=float(pred.roughness[0]), specular=float(pred.specular[0]),
                     metallic=float(pred.metallic[0]), shading=config.shading, checkpoint=str(run),
-                    input=str(image), input_camera=dict(setup, azimuth_deg=azimuth), refine_steps=refine_steps,
+                    input=str(image), input_camera=dict(setup, azimuth_deg=azimuth), framing=framing_mode,
+                    refine_steps=refine_steps,
                     albedo_gain=float(gain[0]), refine_seconds=round(time.perf_counter() - t0, 3) if refine_steps else 0.0)
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
@@ -209,12 +260,25 @@ def build_parser() -> Parser:
                     "(linear), with the object's mask as alpha (or see --background)")
     ap.add_argument("--out", required=True, metavar="DIR", help="folder for the results (made if missing)")
     ap.add_argument("--azimuth", type=finite_float, default=0.0, metavar="DEG", help="azimuth of the input camera")
+    ap.add_argument("--elevation", type=float_in(-89.0, 89.0), metavar="DEG",
+                    help="elevation of the input camera above the ground plane (default: the training data's)")
+    ap.add_argument("--fov", type=float_in(1.0, 150.0), metavar="DEG",
+                    help="field of view of the input camera (default: the training data's)")
+    ap.add_argument("--distance", type=float_in(0.0, 1e4, open_low=True), metavar="D",
+                    help="distance of the input camera from the object's centre, in the data's units (default: the "
+                         "training data's)")
+    ap.add_argument("--framing", choices=("object", "as-is"), default="object",
+                    help="object: crop and centre the object as the training views frame it; as-is: pad the image "
+                         "to a square as it is (default: object)")
+    ap.add_argument("--mask", metavar="FILE", help="the object's mask as an image of the input's size (white or opaque: "
+                    "the object), for an image without alpha")
     ap.add_argument("--background", type=unit_rgb, metavar="R,G,B",
                     help="sRGB colour (0-1) of a flat background to cut out of an image without alpha")
     ap.add_argument("--tolerance", type=non_negative_float, default=0.05, metavar="FLOAT",
                     help="with --background: largest sRGB difference from it that is still background")
-    ap.add_argument("--views", type=positive_int, default=4, metavar="N", help="novel views rendered around the object")
-    ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel of the novel views")
+    ap.add_argument("--views", type=int_in(1, MAX_VIEWS), default=4, metavar="N",
+                    help="novel views rendered around the object")
+    ap.add_argument("--spp", type=int_in(1, MAX_SPP), default=64, metavar="N", help="MC samples per pixel of the novel views")
     ap.add_argument("--refine-steps", type=int_in(0, MAX_STEPS), default=0, metavar="N",
                     help=f"refine the predicted light with N Adam steps against the input view (pipelines.training.refine; "
                          f"tens suffice, at most {MAX_STEPS}; the time they take is shown as they run)")
@@ -230,8 +294,12 @@ def main(argv=None) -> int:
         ap.error("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
     try:
         run = run_folder(args.checkpoint)
+        if args.mask is not None and args.background is not None:
+            ap.error("--mask and --background both give the object's mask: pass one")
         material = predict(run, Path(args.image), Path(args.out), args.azimuth, args.background, args.tolerance,
-                           views=args.views, spp=args.spp, refine_steps=args.refine_steps, device=args.device)
+                           views=args.views, spp=args.spp, refine_steps=args.refine_steps, device=args.device,
+                           elevation=args.elevation, fov=args.fov, distance=args.distance, framing_mode=args.framing,
+                           mask=args.mask)
     except (DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

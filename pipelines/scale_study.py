@@ -18,7 +18,6 @@ run's end. Points marked GPU are skipped where CUDA is not available.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -29,18 +28,16 @@ import torch
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp.display import tonemap_envmap
-from dibrpp.cli_args import check_output_folder
+from dibrpp.cli_args import Parser, check_output_folder
 from dibrpp.io import DataError
-from dibrpp.formatting import format_number, markdown_table, pyplot, save_figure
 
-from .evaluation.summary import CONSTANT_REFERENCES
+from .evaluation.scale_figures import AXIS_LABELS, plot_axis, plot_light_row, table
 from .model.model_input import encoder_input
 from .scoring import figure_views
-from .training.runs import is_run, load_run
+from .training.config import PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides
+from .training.runs import is_run, load_config, load_run
 
 BASE = {"resolution": 64, "iterations": 1500, "cars": 80, "maps": 32}
-AXIS_LABELS = {"resolution": "input resolution (pixels a side)", "iterations": "training iterations",
-               "cars": "training cars", "maps": "training env maps"}
 TRAIN_SPLIT_STRIDE = 12  # 2 views a training sample: 320 views, as many as the test split's at stride 3
 
 
@@ -137,6 +134,9 @@ def run_point(p: Point, folders: Folders, train_args: tuple[str, ...] = ()) -> N
         return
     print(f"== {p.name}: {p.axis} {p.value or ''}", flush=True)
     dataset, run, out = folders.data / p.dataset, folders.run(p), folders.out
+    wrong = mismatch(p, run)
+    if wrong:
+        raise DataError(f"{run}: trained with {wrong}, so it is not the point {p.name}; move it away and rerun")
     if not complete(dataset):
         sh("-m", "datagen", *p.datagen, "--out", str(dataset), "--quiet")
     device = ("--device", "cuda") if p.gpu else ()
@@ -152,8 +152,13 @@ def evaluated(out: Path, split: str) -> dict[Path, dict]:
     its path)."""
     found = {}
     for path in sorted((out / split).glob("*/*.json")):
-        r = json.loads(path.read_text())
-        if isinstance(r, dict) and "run" in r:
+        try:
+            r = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            print(f"warning: {path}: unreadable ({type(e).__name__}); ignored (rerun its point to evaluate it again)",
+                  file=sys.stderr)
+            continue
+        if isinstance(r, dict) and isinstance(r.get("run"), str):
             found[Path(r["run"]).resolve()] = r
     return found
 
@@ -164,17 +169,36 @@ def result(out: Path, split: str, run: Path) -> dict | None:
 
 
 def train_minutes(run: Path) -> float | None:
+    """The run's training wall time from its summary.json; None (with a warning where the file is broken) if none."""
     path = run / "summary.json"
-    return json.loads(path.read_text())["seconds"] / 60 if path.exists() else None
+    if not path.exists():
+        return None
+    try:
+        return float(json.loads(path.read_text())["seconds"]) / 60
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        print(f"warning: {path}: no training time in it ({type(e).__name__}); the point is tabled without one",
+              file=sys.stderr)
+        return None
 
 
-# what each axis's figure plots: (key, title); a light metric's constant-map score is drawn beside it
-CURVES = [("image_whole", "image L1, whole image"), ("image_foreground", "image L1, foreground"),
-          ("iou", "2D IoU loss"), ("texture", "texture 1-NCC"), ("normal_deg", "normal error (deg)"),
-          ("light_ldr", "light 1-NCC, LDR maps"), ("light_hdr", "light 1-NCC, HDR maps"),
-          ("probe_diffuse", "diffuse probe si-RMSE"), ("probe_metal", "rough-metal probe si-RMSE"),
-          ("probe_mirror", "mirror probe si-RMSE"), ("direction_deg", "sun direction, median (deg)"),
-          ("minutes", "training wall time (min, 2 cores)")]
+def nominal(p: Point) -> dict:
+    """What a point's run must have been trained with: its dataset's folder name, iterations, training cars."""
+    flags = dict(zip(p.train[::2], p.train[1::2]))
+    return {"dataset": p.dataset, "iterations": int(flags.get("--iterations", BASE["iterations"])),
+            "train_objects": int(flags.get("--train-objects", 0))}
+
+
+def mismatch(p: Point, run: Path) -> str:
+    """How the run in ``run`` differs from what the point stands for ('' where it does not, or is not a run)."""
+    if not is_run(run):
+        return ""
+    try:
+        config = load_config(run)
+    except DataError as e:
+        return str(e)
+    trained = {"dataset": Path(config.dataset).name, "iterations": config.iterations,
+               "train_objects": config.train_objects}
+    return ", ".join(f"{k} {trained[k]!r}, not {v!r}" for k, v in nominal(p).items() if trained[k] != v)
 
 
 def axis_rows(axis: str, folders: Folders) -> list[dict]:
@@ -185,32 +209,13 @@ def axis_rows(axis: str, folders: Folders) -> list[dict]:
         test, train = tests.get(run.resolve()), trains.get(run.resolve())
         if test is None:
             continue
+        wrong = mismatch(p, run)
+        if wrong:
+            print(f"warning: {p.name}: {run} was trained with {wrong}; left out of the curves", file=sys.stderr)
+            continue
         rows.append({"point": p.name, "value": value(p, axis), "run": run, "test": test, "train": train,
                      "minutes": train_minutes(run)})
     return rows
-
-
-def plot_axis(axis: str, rows: list[dict], path: Path) -> None:
-    plt = pyplot()
-    fig, axes = plt.subplots(3, 4, figsize=(15, 9.5))
-    xs = [r["value"] for r in rows]
-    for ax, (key, title) in zip(axes.flat, CURVES):
-        if key == "minutes":
-            ax.plot(xs, [r["minutes"] or float("nan") for r in rows], "o-", color="k")
-        else:
-            ax.plot(xs, [r["test"][key] for r in rows], "o-", label="test split")
-            ax.plot(xs, [r["train"][key] if r["train"] else float("nan") for r in rows], "x--", label="train split")
-            if f"{key}_constant" in CONSTANT_REFERENCES:
-                ax.plot(xs, [r["test"][f"{key}_constant"] for r in rows], ":", color="grey", label="constant map (test)")
-        ax.set_xscale("log", base=2)
-        ax.set_xticks(xs, [str(x) for x in xs])
-        ax.minorticks_off()
-        ax.set_title(title, fontsize=10)
-        ax.grid(alpha=0.3)
-    axes.flat[5].legend(fontsize=8)
-    fig.supxlabel(AXIS_LABELS[axis])
-    fig.suptitle(f"The default SG model along {AXIS_LABELS[axis]} (glossy; base: 64², 1500 its, 80 cars, 32 maps)")
-    save_figure(fig, path, dpi=90)
 
 
 @torch.no_grad()
@@ -226,59 +231,24 @@ def predicted_lights(run: Path) -> tuple[list[torch.Tensor], list[torch.Tensor]]
     return [tonemap_envmap(m) for m in maps], [tonemap_envmap(m) for m in env]
 
 
-def plot_light_row(axis: str, rows: list[dict], path: Path) -> None:
-    """The GT map and each point's predicted light, one test view per row."""
-    lights = [predicted_lights(r["run"]) for r in rows]
-    gt = lights[0][1]
-    plt = pyplot()
-    fig, axes = plt.subplots(len(gt), len(rows) + 1, figsize=(2.6 * (len(rows) + 1), 1.45 * len(gt)), squeeze=False)
-    for i in range(len(gt)):
-        for j, img in enumerate([gt[i], *(pred[i] for pred, _ in lights)]):
-            ax = axes[i, j]
-            ax.imshow(img.clamp(0, 1).numpy())
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if i == 0:
-                ax.set_title("GT" if j == 0 else f"{rows[j - 1]['value']}", fontsize=9)
-    fig.suptitle(f"Predicted light along {AXIS_LABELS[axis]} (test views; tone-mapped equirect, up at the top)",
-                 fontsize=10)
-    save_figure(fig, path, dpi=100)
-
-
-TABLE_KEYS = ("image_whole", "iou", "texture", "normal_deg", "light_ldr", "probe_metal", "probe_mirror", "direction_deg")
-TRAIN_KEYS = ("image_whole", "light_ldr", "probe_metal")
-TITLES = dict(CURVES)
-
-
-def cell(r: dict | None, key: str) -> str:
-    """A metric, with its ratio to the constant map's score where it has one."""
-    if not r:
-        return "—"
-    ratio = f" ({r[key] / r[key + '_constant']:.2f}×)" if key + "_constant" in r else ""
-    return format_number(r[key], ".3g") + ratio
-
-
-def table(axis: str, rows: list[dict]) -> str:
-    """Each point's test metrics, a few train-split ones, its training time."""
-    head = [AXIS_LABELS[axis], *(TITLES[k] for k in TABLE_KEYS), *(f"train: {TITLES[k]}" for k in TRAIN_KEYS),
-            "training (min)"]
-    body = [[str(r["value"]), *(cell(r["test"], k) for k in TABLE_KEYS), *(cell(r["train"], k) for k in TRAIN_KEYS),
-             format_number(r["minutes"], ".1f")] for r in rows]
-    return markdown_table(head, body)
-
-
 def report(folders: Folders) -> None:
+    """Every axis's table, curves and light row; every run is read before anything is written, so a broken run
+    leaves the earlier report as it was."""
     out = folders.out
     text = ["# Scale study: the default SG model along each axis", "",
             "Test split (unseen cars under unseen maps) unless marked train; (×) is the ratio to a constant map's score.", ""]
+    axes = {}
     for axis in BASE:
         rows = axis_rows(axis, folders)
         if len(rows) < 2:
             print(f"{axis}: {len(rows)} point(s) evaluated; no curve")
             continue
-        plot_axis(axis, rows, out / f"scale_{axis}.png")
-        plot_light_row(axis, rows, out / f"scale_{axis}_light.png")
+        axes[axis] = rows, [predicted_lights(r["run"]) for r in rows]
         text += [f"## {AXIS_LABELS[axis]}", "", table(axis, rows), ""]
+    out.mkdir(parents=True, exist_ok=True)
+    for axis, (rows, lights) in axes.items():
+        plot_axis(axis, rows, out / f"scale_{axis}.png")
+        plot_light_row(axis, rows, lights, out / f"scale_{axis}_light.png")
     (out / "scale.md").write_text("\n".join(text))
     print(f"wrote {out}/scale.md and the figures beside it")
 
@@ -288,7 +258,8 @@ def list_points(folders: Folders) -> None:
     rows = []
     for p in POINTS:
         run = folders.run(p)
-        state = ("evaluated" if run.resolve() in tests and run.resolve() in trains else
+        state = ("not this point" if mismatch(p, run) else
+                 "evaluated" if run.resolve() in tests and run.resolve() in trains else
                  "trained" if (run / "summary.json").exists() else "started" if is_run(run) else "-")
         rows.append((p.name, p.axis, p.dataset, str(run), f"{'GPU ' if p.gpu else ''}{state}"))
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
@@ -296,9 +267,32 @@ def list_points(folders: Folders) -> None:
         print(" ".join(c.ljust(w) for c, w in zip(r, widths)), r[4])
 
 
+STUDY_FLAGS = ("dataset", "out", "seed", "iterations", "train_objects", "device")  # each point sets these itself
+
+
+def check_train_args(text: str) -> tuple[str, ...]:
+    """--train-args as pipelines.train reads them, checked before anything renders or trains."""
+    ap = Parser(prog="--train-args")
+    ap.add_argument("--preset", choices=sorted(PRESETS))
+    add_config_arguments(ap)
+    words = tuple(text.split())
+    try:
+        args, unknown = ap.parse_known_args(words)
+        if unknown:
+            raise DataError(f"--train-args: {' '.join(unknown)} is not a training flag")
+        overrides = config_overrides(args)
+        taken = [name for name in STUDY_FLAGS if name in overrides]
+        if taken:
+            raise DataError(f"--train-args: {', '.join('--' + n.replace('_', '-') for n in taken)} is what each point "
+                            "sets itself (its axis); leave it out")
+        TrainConfig(**overrides).validate()
+    except (ConfigError, TypeError, ValueError) as e:
+        raise DataError(f"--train-args: {e}") from None
+    return words
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m pipelines.scale_study", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = Parser(prog="python -m pipelines.scale_study", description=__doc__)
     ap.add_argument("command", choices=("list", "run", "report"))
     ap.add_argument("--points", help="comma-separated point names, in the order to run them (default: every point "
                     "the machine can run, in the listed order)")
@@ -310,32 +304,35 @@ def main(argv=None) -> int:
     ap.add_argument("--train-args", default="", help="flags for every new run, e.g. --train-args='--threads 1' (runs "
                     "that repeat bit for bit)")
     args = ap.parse_args(argv)
-    names = args.points.split(",") if args.points else [p.name for p in POINTS]
+    names = [n for n in args.points.split(",") if n] if args.points is not None else [p.name for p in POINTS]
+    if not names:
+        print("error: --points is empty; name the points to run (python -m pipelines.scale_study list shows them)",
+              file=sys.stderr)
+        return 2
     unknown = [n for n in names if n not in BY_NAME]
     if unknown:
         print(f"error: no point {', '.join(unknown)}; the points: {', '.join(BY_NAME)}", file=sys.stderr)
         return 2
     try:
-        if not args.data.is_dir():
+        train_args = check_train_args(args.train_args)
+        if args.command == "run" and not args.data.is_dir():
             raise DataError(f"--data {args.data}: no such folder; give the folder the datasets are in (or go in)")
         for flag, folder in (("--runs", args.runs), ("--main-runs", args.main_runs), ("--out", args.out)):
             check_output_folder(flag, folder)
+        folders = Folders(args.data, args.runs, args.main_runs, args.out)
+        if args.command == "list":
+            list_points(folders)
+        elif args.command == "report":
+            report(folders)
+        else:
+            for name in names:
+                run_point(BY_NAME[name], folders, train_args)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    folders = Folders(args.data, args.runs, args.main_runs, args.out)
-    if args.command == "list":
-        list_points(folders)
-    elif args.command == "report":
-        report(folders)
-    else:
-        try:
-            for name in names:
-                run_point(BY_NAME[name], folders, tuple(args.train_args.split()))
-        except subprocess.CalledProcessError as e:
-            print(f"error: {' '.join(e.cmd[1:])} failed (exit {e.returncode}); fix it and rerun to resume",
-                  file=sys.stderr)
-            return 1
+    except subprocess.CalledProcessError as e:
+        print(f"error: {' '.join(e.cmd[1:])} failed (exit {e.returncode}); fix it and rerun to resume", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -119,7 +119,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
     # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
     # flipped predictions of 180 degrees should not hide that most are right)
-    result = {k: float(v.nanmedian() if k.startswith(("direction_deg", "normal_deg")) else
+    result = {k: float(metrics.median(v) if k.startswith(("direction_deg", "normal_deg")) else
                        v.nanmean() if k.startswith("normal") else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure

@@ -207,12 +207,12 @@ def normal_error_deg(pred: torch.Tensor, pred_alpha: torch.Tensor, gt: torch.Ten
     pred, gt = F.normalize(pred, dim=-1, eps=1e-12), F.normalize(gt, dim=-1, eps=1e-12)
     angle = torch.rad2deg(torch.arccos((pred * gt).sum(-1).clamp(-1, 1)))
     both = (pred_alpha > 0.5) & (gt_alpha > 0.5)
-    median, share = [], []
+    medians, shares = [], []
     for a, m in zip(angle, both):
         v = a[m]
-        median.append(v.median() if len(v) else a.new_tensor(float("nan")))
-        share.append((v <= within).float().mean() if len(v) else a.new_tensor(float("nan")))
-    return torch.stack(median), torch.stack(share)
+        medians.append(median(v).to(a.dtype))
+        shares.append((v <= within).float().mean() if len(v) else a.new_tensor(float("nan")))
+    return torch.stack(medians), torch.stack(shares)
 
 
 def angle_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -332,8 +332,15 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
     at_sun = both & (angle_deg(mirror_directions(gt_n, gt_v), sun[:, None].expand_as(gt_n)) <= SUN_PIXEL_DEG)
     turn = normal_turn_deg(gt_n, gt_w, cameras.resolution)
     nan = angle.new_tensor(float("nan"))
-    return torch.stack([torch.stack([a[m].median() if m.any() else nan for a, m in ((e, b), (e, s), (t, s))])
+    return torch.stack([torch.stack([median(a[m]).to(a.dtype) if m.any() else nan for a, m in ((e, b), (e, s), (t, s))])
                         for e, t, b, s in zip(angle, turn, both, at_sun)])
+
+
+def median(values: torch.Tensor) -> torch.Tensor:
+    """The median of ``values``, NaN ignored: the mean of the two middle values of an even count (torch's
+    ``median`` / ``nanmedian`` return the lower one, which the intervals' ``np.median`` does not); NaN if none."""
+    values = values.double().flatten()
+    return torch.nanquantile(values, 0.5) if values.numel() else values.new_tensor(math.nan)
 
 
 def direction_summary(errors_deg: np.ndarray, samples: np.ndarray, resamples: int = 2000, seed: int = 0) -> dict:

@@ -25,10 +25,11 @@ class ConfigError(ValueError):
 
 
 def _opt(default, help: str, choices: tuple | None = None, minimum: float | None = None,  # noqa: A002
-         above: float | None = None):
-    """A config field with its CLI help, its allowed values or its lower bound, inclusive (``minimum``) or
-    strict (``above``) (checked by from_dict)."""
-    return field(default=default, metadata=dict(help=help, choices=choices, minimum=minimum, above=above))
+         above: float | None = None, maximum: float | None = None):
+    """A config field with its CLI help, its allowed values, its lower bound, inclusive (``minimum``) or strict
+    (``above``), and its upper bound (``maximum``) (checked by validate)."""
+    return field(default=default, metadata=dict(help=help, choices=choices, minimum=minimum, above=above,
+                                                maximum=maximum))
 
 
 @dataclass
@@ -42,7 +43,7 @@ class TrainConfig:
                               "learning curves; 0 for all", minimum=0)
     # schedule
     iterations: int = _opt(1500, "training iterations", minimum=1)
-    batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1)
+    batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1, maximum=256)
     lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
     lr_schedule: str = _opt("cosine-tail", "the learning rate over the run: constant for two thirds, then a cosine decay "
                             "to zero over the last third (the weights settle instead of jittering at the end), or "
@@ -107,13 +108,15 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be {kind.__name__}, got {value!r}")
             if kind is float and not math.isfinite(value):
                 raise ConfigError(f"{f.name} must be a finite number, got {value!r}")
-            choices, minimum, above = (f.metadata.get(k) for k in ("choices", "minimum", "above"))
+            choices, minimum, above, maximum = (f.metadata.get(k) for k in ("choices", "minimum", "above", "maximum"))
             if choices is not None and value not in choices:
                 raise ConfigError(f"{f.name} must be one of {', '.join(map(repr, choices))}; got {value!r}")
             if minimum is not None and value < minimum:
                 raise ConfigError(f"{f.name} must be >= {minimum}, got {value!r}")
             if above is not None and value <= above:
                 raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
+            if maximum is not None and value > maximum:
+                raise ConfigError(f"{f.name} must be <= {maximum:g} (more does not fit in memory), got {value!r}")
         if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import pickle
 import zipfile
 from dataclasses import dataclass
@@ -109,23 +110,28 @@ def save_config(run: Path, config: TrainConfig) -> None:
         tmp.write_text(json.dumps(config.to_dict(), indent=2))
 
 
-def save_camera(run: Path, camera_setup) -> None:
-    """The orbit camera of the training data (a datagen CameraSetup), for predict."""
+def save_camera(run: Path, camera_setup, object_fill: float) -> None:
+    """The orbit camera of the training data (a datagen CameraSetup) and the share of the image side the object
+    spans in its views (``pipelines.model.framing``), for predict."""
     setup = dict(distance=camera_setup.distance, elevation_deg=camera_setup.elevation_deg,
-                 fov_deg=camera_setup.fov_deg)
+                 fov_deg=camera_setup.fov_deg, object_fill=round(object_fill, 4))
     with atomic_path(Path(run) / CAMERA) as tmp:
         tmp.write_text(json.dumps(setup, indent=2))
 
 
 def load_camera(run: Path) -> dict:
-    """The camera set-up of the data a run was trained on: distance, elevation_deg, fov_deg."""
+    """The camera set-up of the data a run was trained on: distance, elevation_deg, fov_deg, and object_fill
+    where the run recorded it."""
     path = Path(run) / CAMERA
     if not path.is_file():
         raise DataError(f"{path} missing: the run predates saved camera set-ups; retrain it")
     setup = read_json(path, "camera set-up")
-    if not isinstance(setup, dict) or not all(isinstance(setup.get(k), (int, float))
+    if not isinstance(setup, dict) or not all(isinstance(setup.get(k), (int, float)) and math.isfinite(setup[k])
                                               for k in ("distance", "elevation_deg", "fov_deg")):
-        raise DataError(f"{path}: expected numbers distance, elevation_deg and fov_deg; retrain the run")
+        raise DataError(f"{path}: expected finite numbers distance, elevation_deg and fov_deg; retrain the run")
+    fill = setup.get("object_fill")
+    if fill is not None and not (isinstance(fill, (int, float)) and 0 < fill <= 1):
+        raise DataError(f"{path}: object_fill {fill!r} is no share of the image side (0, 1]; retrain the run")
     return setup
 
 
@@ -195,8 +201,21 @@ def load_run(folder: Path) -> Run:
     folder = run_folder(folder)
     config = load_config(folder)
     state, model = load_checkpoint(folder / CHECKPOINT)
+    check_config_matches_model(folder, config, model.config)
     model.eval()
     return Run(folder, config, model, int(state["iteration"]))
+
+
+def check_config_matches_model(folder: Path, config: TrainConfig, model_config: ModelConfig) -> None:
+    """A run's config.json and its checkpoint's model agree on what a run is read as (a config copied from
+    another run would otherwise be evaluated, tabled or predicted with the wrong shading or lobe count)."""
+    for name in ("shading", "lobes", "predict_metallic"):
+        saved, built = getattr(config, name), getattr(model_config, name)
+        if name == "predict_metallic" and saved is None:
+            continue
+        if saved != built:
+            raise DataError(f"{folder}: {CONFIG} says {name} = {saved!r} but {CHECKPOINT} holds a model with "
+                            f"{name} = {built!r}; the files belong to different runs: restore the run's own {CONFIG}")
 
 
 # ----------------------------------------------------------------------------- what a run is built from

@@ -23,8 +23,9 @@ def test_an_unknown_point_is_refused_by_name(capsys):
 
 @pytest.mark.slow  # two smoke runs, each trained and evaluated twice in its own process: ~2 min on 2 cores (resuming is train's and evaluate's, tested there)
 def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy, tmp_path, monkeypatch, capsys):
-    points = [scale_study.Point("base", "base", 0, "glossy", (), "glossy/sg-seed0", main=True),
-              scale_study.Point("cars2", "cars", 2, "glossy", (), "cars2", ("--train-objects", "2")),
+    two = ("--iterations", "2")  # the points' own length: a run is a point's only if trained as the point says
+    points = [scale_study.Point("base", "base", 0, "glossy", (), "glossy/sg-seed0", two, main=True),
+              scale_study.Point("cars2", "cars", 2, "glossy", (), "cars2", ("--train-objects", "2", *two)),
               scale_study.Point("gpu", "resolution", 256, "glossy", (), "gpu", gpu=True)]
     monkeypatch.setattr(scale_study, "POINTS", points)
     monkeypatch.setattr(scale_study, "BY_NAME", {p.name: p for p in points})
@@ -32,7 +33,7 @@ def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy,
     where = ["--data", str(tiny_glossy.parent), "--runs", str(runs), "--main-runs", str(main_runs), "--out", str(out)]
     points_to_run = "base,cars2" if torch.cuda.is_available() else "base,cars2,gpu"
     assert scale_study.main(["run", *where, "--points", points_to_run,
-                             "--train-args=--preset smoke --iterations 2 --shading sg --lobes 4"]) == 0
+                             "--train-args=--preset smoke --shading sg --lobes 4"]) == 0
     said = capsys.readouterr().out
     if not torch.cuda.is_available():
         assert "gpu: needs a GPU; skipped" in said and not (runs / "gpu").exists()
@@ -52,3 +53,63 @@ def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy,
     assert "## training cars" in table and "| 2 |" in table and "| 80 |" in table
     for png in ("scale_cars.png", "scale_cars_light.png"):
         assert (out / png).stat().st_size > 5000
+
+
+def _where(tmp_path):
+    return ["--data", str(tmp_path / "data"), "--runs", str(tmp_path / "runs-scale"), "--main-runs",
+            str(tmp_path / "runs"), "--out", str(tmp_path / "out" / "scale")]
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    return err
+
+
+def test_list_and_report_need_no_data_and_report_makes_its_folder(tmp_path, capsys):
+    assert scale_study.main(["list", *_where(tmp_path)]) == 0  # a fresh checkout has no data/ yet
+    assert "base" in capsys.readouterr().out
+    assert scale_study.main(["report", *_where(tmp_path)]) == 0
+    assert (tmp_path / "out" / "scale" / "scale.md").exists()
+
+
+def test_a_corrupt_evaluation_is_ignored_with_a_warning_naming_it(tmp_path, capsys):
+    broken = tmp_path / "out" / "scale" / "test" / "glossy" / "its750.json"
+    broken.parent.mkdir(parents=True)
+    broken.write_text('{"run": ')
+    for command in ("list", "report"):
+        assert scale_study.main([command, *_where(tmp_path)]) == 0
+        assert f"warning: {broken}: unreadable" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, said", [
+    (["--points", ""], "--points is empty"),
+    (["--train-args=--iterations 5"], "--iterations is what each point sets itself"),
+    (["--train-args=--train-objects 5"], "--train-objects is what each point sets itself"),
+    (["--train-args=--no-such-flag"], "--no-such-flag is not a training flag"),
+    (["--train-args=--lr -1"], "--train-args: "),
+    (["--bogus"], "unrecognized arguments"),
+])
+def test_bad_flags_are_one_error_line_before_anything_runs(tmp_path, capsys, args, said):
+    try:
+        status = scale_study.main(["run", *_where(tmp_path), *args])
+    except SystemExit as e:  # argparse's own errors
+        status = e.code
+    assert status == 2
+    assert said in _one_error_line(capsys)
+    assert not (tmp_path / "runs-scale").exists()
+
+
+def test_a_run_that_is_not_what_its_point_says_is_neither_tabled_nor_resumed(tmp_path, capsys):
+    from pipelines.training.config import TrainConfig
+
+    base = tmp_path / "runs" / "glossy" / "sg-seed0"  # a 4-iteration run where the 1500-iteration base belongs
+    base.mkdir(parents=True)
+    (base / "config.json").write_text(json.dumps(TrainConfig(dataset=str(tmp_path / "data" / "glossy"),
+                                                             iterations=4).to_dict()))
+    (base / "checkpoint.pt").write_bytes(b"")
+    (tmp_path / "data").mkdir()
+    assert scale_study.main(["list", *_where(tmp_path)]) == 0
+    assert "not this point" in [line for line in capsys.readouterr().out.splitlines() if line.startswith("base ")][0]
+    assert scale_study.main(["run", *_where(tmp_path), "--points", "base"]) == 2
+    assert "iterations 4, not 1500" in _one_error_line(capsys)
