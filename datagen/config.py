@@ -23,6 +23,7 @@ DATASET_DEFAULTS = {"diffuse": dict(spp=64, denoise=True)}
 
 # The model's encoder downsamples images by 16, so training takes a side that is a multiple of 16
 # (pipelines.training.config.TrainConfig.image_size); a dataset at another side could not be trained on.
+MAX_RESOLUTION = 1024
 RESOLUTION_MULTIPLE = 16
 
 _POSITIVE = ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "texture_size",
@@ -88,6 +89,9 @@ class Config:
 
     def _validate_resolution(self) -> None:
         step = RESOLUTION_MULTIPLE
+        if self.resolution > MAX_RESOLUTION:
+            raise ValueError(f"--resolution {self.resolution}: at most {MAX_RESOLUTION} (the paper's images are 256; a "
+                             "larger render takes hours a view)")
         if self.resolution % step == 0:
             return
         near = [n for n in (self.resolution // step * step, (self.resolution // step + 1) * step) if n > 0]

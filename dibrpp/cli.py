@@ -14,6 +14,9 @@ import torch
 
 from .cli_args import Parser, check_writable, unit_rgb
 
+MAX_SPP = 16384  # samples per pixel: far past where MC noise stops showing
+MAX_SAMPLES = 2 ** 30  # samples in one render: ~1024² pixels at 1024 spp, an hour or more on 2 cores
+
 
 class CLIError(Exception):
     pass
@@ -80,8 +83,11 @@ def _check(args) -> None:
             raise CLIError(f"--{name} {value}: must be in [{lo}, {hi}]")
     if args.resolution <= 0 or args.resolution > 8192:
         raise CLIError(f"--resolution {args.resolution}: must be in 1..8192")
-    if args.spp <= 0:
-        raise CLIError(f"--spp {args.spp}: must be positive")
+    if not 1 <= args.spp <= MAX_SPP:
+        raise CLIError(f"--spp {args.spp}: must be in 1..{MAX_SPP}")
+    if args.shading == "mc" and args.spp * args.resolution ** 2 > MAX_SAMPLES:
+        raise CLIError(f"--spp {args.spp} at --resolution {args.resolution}: {args.spp * args.resolution ** 2:.3g} "
+                       f"samples, more than {MAX_SAMPLES:.3g} (hours on a CPU); lower one of them")
     if args.sg_lobes <= 0:
         raise CLIError(f"--sg-lobes {args.sg_lobes}: must be positive")
     if not 0 < args.fov < 180:

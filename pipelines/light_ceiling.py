@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from datagen.reader import MultiViewDataset, collate
 from dibrpp import Material, Renderer
-from dibrpp.cli_args import Parser, check_output_folder, positive_int
+from dibrpp.cli_args import Parser, check_output_folder, int_in, positive_int
 from dibrpp.display import display_image, tonemap_envmap
 from dibrpp.formatting import markdown_table, pyplot, save_figure
 from dibrpp.io import DataError, atomic_path
@@ -135,7 +135,7 @@ def main(argv=None) -> int:
                     help="every N-th view of each sample (24: one view a sample)")
     ap.add_argument("--max-views", type=positive_int, metavar="N",
                     help="fit only the first N of those views (default: all; a view at 128 x 128 takes ~10 s on 2 cores)")
-    ap.add_argument("--steps", type=positive_int, default=1000, metavar="N", help="Adam steps a view")
+    ap.add_argument("--steps", type=int_in(1, 20000), default=1000, metavar="N", help="Adam steps a view")
     args = ap.parse_args(argv)
     out, name = Path(args.out), Path(args.dataset).name
     try:

@@ -240,8 +240,12 @@ class TrainingLog:
 
     def prepare(self) -> None:
         rows = self.path.read_text().splitlines()[1:] if self.start and self.path.exists() else []
-        kept = [r for r in rows if int(r.split(",")[0]) <= self.start]
-        self.seconds_before = float(kept[-1].split(",")[-1]) if kept else 0.0
+        try:
+            kept = [r for r in rows if int(r.split(",")[0]) <= self.start]
+            self.seconds_before = float(kept[-1].split(",")[-1]) if kept else 0.0
+        except ValueError:
+            raise DataError(f"{self.path}: not a training log (a row that is no 'iteration,...,seconds'); delete it to "
+                            "resume with a log that starts at the checkpoint") from None
         self.path.write_text(LOG_HEADER + "".join(r + "\n" for r in kept))
         try:
             from torch.utils.tensorboard import SummaryWriter
@@ -304,6 +308,12 @@ def parse_config(args: argparse.Namespace) -> tuple[TrainConfig, MultiViewDatase
     its training split. ``--resume`` without --config starts from the run's own config in --out."""
     flags = config_overrides(args)
     run = Path(flags.get("out", TrainConfig.out))
+    if args.resume and runs.is_run(run) and args.preset is not None:
+        raise ConfigError(f"--resume continues {run} with its own settings; --preset {args.preset} cannot change them: "
+                          "drop --preset (or start a new run in another --out)")
+    if args.resume and not runs.is_run(run) and "dataset" not in flags and not args.config:
+        raise DataError(f"--out {run}: no run to resume (no config.json and checkpoint.pt); start one with --dataset "
+                        "DIR (--resume may stay: it starts the run where there is none)")
     if args.config:
         values = runs.read_json(args.config, "config file")
         if not isinstance(values, dict):
@@ -313,7 +323,7 @@ def parse_config(args: argparse.Namespace) -> tuple[TrainConfig, MultiViewDatase
     else:
         values = {}
     try:
-        config = TrainConfig.from_dict({**values, **flags}, preset=args.preset)
+        config = TrainConfig.from_dict({**values, **flags}, preset=args.preset or "cpu")
     except ConfigError as e:
         raise ConfigError(f"{args.config}: {e}" if args.config else str(e)) from None
     return config, open_train_split(config.dataset)
@@ -321,7 +331,7 @@ def parse_config(args: argparse.Namespace) -> tuple[TrainConfig, MultiViewDatase
 
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.train", description=__doc__)
-    ap.add_argument("--preset", default="cpu", choices=sorted(PRESETS), help="size of the run (default: cpu)")
+    ap.add_argument("--preset", choices=sorted(PRESETS), help="size of the run (default: cpu)")
     ap.add_argument("--config", metavar="JSON", help="file of TrainConfig fields (after the preset and variant)")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with the "
                     "settings in its config.json (a flag that changes what it trains is refused)")

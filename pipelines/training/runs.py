@@ -243,6 +243,9 @@ def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: b
     else:
         flat = lambda t: t.flatten(0, 1)  # noqa: E731 (samples, views, ...) -> views
         images = model.visible_input(encoder_input(flat(data.images))).contiguous()
+        if not progress:  # the fit takes minutes on a CPU: say so where no bar shows it
+            print(f"{out}: fitting the pixel-normal network to the training views' normals "
+                  f"({pixel_normals.FIT_STEPS} steps) before training", flush=True)
         pixel_normals.fit(net, images, flat(data.world_to_camera), flat(data.normals), seed, progress=progress)
         with atomic_path(path) as tmp:
             torch.save(net.state_dict(), tmp)

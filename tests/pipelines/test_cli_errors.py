@@ -311,3 +311,104 @@ def test_diagnose_light_on_a_set_of_another_image_size_is_refused_naming_both(ru
     code = call(diagnose_light.main, ["--run", str(run), "--dataset", str(other), "--split", "all"])
     assert_one_error(code, capsys.readouterr().err, "32x32", "48x48")
 
+
+
+# ----------------------------------------------------------------------------- the new surfaces' bad input
+
+def test_train_resume_with_a_preset_is_refused_not_ignored(tiny_glossy, run_copy, capsys):
+    before = (run_copy / "checkpoint.pt").read_bytes()
+    code = train.main(["--out", str(run_copy), "--resume", "--preset", "paper", "--no-progress"])
+    assert_one_error(code, capsys.readouterr().err, "--preset paper", "--resume")
+    assert (run_copy / "checkpoint.pt").read_bytes() == before
+
+
+def test_train_resume_on_an_empty_out_says_there_is_no_run(tmp_path, capsys):
+    code = train.main(["--out", str(tmp_path / "nothing"), "--resume", "--no-progress"])
+    assert_one_error(code, capsys.readouterr().err, "--out", "no run to resume")
+
+
+def test_train_resume_on_a_corrupt_log_names_it(tiny_glossy, run_copy, capsys):
+    (run_copy / "log.csv").write_text("iteration,total\nabc,def\n")
+    code = train.main(["--out", str(run_copy), "--resume", "--iterations", "4", "--no-progress"])
+    assert_one_error(code, capsys.readouterr().err, "log.csv")
+
+
+def test_train_batch_objects_beyond_memory_is_refused(tiny_glossy, tmp_path, capsys):
+    code = train.main(smoke_args(tiny_glossy, tmp_path / "r", "--batch-objects", "100000"))
+    assert_one_error(code, capsys.readouterr().err, "batch_objects", "256")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_camera_json_with_nan_names_the_file(run_copy, tmp_path, capsys):
+    camera = json.loads((run_copy / "camera.json").read_text())
+    (run_copy / "camera.json").write_text(json.dumps({**camera, "elevation_deg": float("nan")}))
+    image = tmp_path / "in.png"
+    Image.fromarray(np.full((16, 16, 4), 200, np.uint8)).save(image)
+    code = predict.main(["--checkpoint", str(run_copy), "--image", str(image), "--out", str(tmp_path / "p")])
+    assert_one_error(code, capsys.readouterr().err, "camera.json")
+
+
+@pytest.mark.parametrize("field, value", [("shading", "mc"), ("lobes", 16)])
+def test_a_config_of_another_run_over_a_checkpoint_is_refused_by_predict_and_evaluate(run_copy, tmp_path, capsys,
+                                                                                      field, value):
+    config = json.loads((run_copy / "config.json").read_text())
+    (run_copy / "config.json").write_text(json.dumps({**config, field: value}))
+    image = tmp_path / "in.png"
+    Image.fromarray(np.full((16, 16, 4), 200, np.uint8)).save(image)
+    code = predict.main(["--checkpoint", str(run_copy), "--image", str(image), "--out", str(tmp_path / "p")])
+    assert_one_error(code, capsys.readouterr().err, "config.json", field)
+    code = evaluate.main(eval_args(run_copy, tmp_path / "e"))
+    assert_one_error(code, capsys.readouterr().err, "config.json", field)
+    assert not (tmp_path / "e" / "glossy" / "sg.json").exists()
+
+
+def test_an_exr_alpha_above_one_is_refused_not_read_as_brighter_light(run, tmp_path, capsys):
+    rgba = np.full((16, 16, 4), 0.5, np.float32)
+    rgba[..., 3] = 3.0  # a scaled alpha: the colour divided by it would come out 3x too dark, the light too bright
+    write_exr(tmp_path / "in.exr", rgba)
+    code = predict.main(["--checkpoint", str(run), "--image", str(tmp_path / "in.exr"), "--out", str(tmp_path / "p")])
+    assert_one_error(code, capsys.readouterr().err, "alpha outside [0, 1]")
+    assert not (tmp_path / "p").exists()
+
+
+def test_predict_background_on_an_image_with_alpha_is_refused_not_ignored(run, tmp_path, capsys):
+    Image.fromarray(np.full((16, 16, 4), 200, np.uint8)).save(tmp_path / "in.png")
+    code = predict.main(["--checkpoint", str(run), "--image", str(tmp_path / "in.png"), "--out", str(tmp_path / "p"),
+                         "--background", "1,1,1"])
+    assert_one_error(code, capsys.readouterr().err, "--background", "alpha")
+
+
+@pytest.mark.parametrize("flag, value", [("--views", "100000"), ("--spp", "100000000"), ("--elevation", "95"),
+                                         ("--fov", "0"), ("--distance", "-1"), ("--framing", "zoom")])
+def test_predict_unbounded_or_impossible_camera_flags_are_refused(run, tmp_path, capsys, flag, value):
+    Image.fromarray(np.full((16, 16, 4), 200, np.uint8)).save(tmp_path / "in.png")
+    code = call(predict.main, ["--checkpoint", str(run), "--image", str(tmp_path / "in.png"),
+                               "--out", str(tmp_path / "p"), flag, value])
+    assert_one_error(code, capsys.readouterr().err, flag)
+    assert not (tmp_path / "p").exists()
+
+
+def test_a_truncated_mesh_in_a_dataset_is_an_error_naming_it(run, tiny_glossy, tmp_path, capsys):
+    data = Path(shutil.copytree(tiny_glossy, tmp_path / "glossy"))
+    for mesh in data.glob("objects/*/mesh.npz"):
+        truncate(mesh)
+    code = evaluate.main(eval_args(run, tmp_path / "e") + ["--dataset", str(data)])
+    assert_one_error(code, capsys.readouterr().err, "mesh.npz", "unreadable mesh")
+    code = call(diagnose_light.main, ["--run", str(run), "--dataset", str(data)])
+    assert_one_error(code, capsys.readouterr().err, "mesh.npz")
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["-m", "dibrpp", "render", "--mesh", "examples/car.obj", "--envmap", "examples/sky.exr", "--spp", "1000000000",
+      "--out", "{tmp}/x.png"], "--spp"),
+    (["-m", "dibrpp", "render", "--mesh", "examples/car.obj", "--envmap", "examples/sky.exr", "--spp", "4096",
+      "--resolution", "8192", "--out", "{tmp}/x.png"], "samples"),
+    (["-m", "datagen", "--dataset", "glossy", "--resolution", "100000", "--out", "{tmp}/d"], "--resolution"),
+    (["-m", "pipelines.light_ceiling", "--dataset", "{tmp}", "--steps", "1000000000"], "--steps"),
+])
+def test_work_with_no_end_is_refused_before_it_starts(tmp_path, argv, said):
+    import sys
+
+    done = subprocess.run([sys.executable, *(a.replace("{tmp}", str(tmp_path)) for a in argv)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert_one_error(done.returncode, done.stderr, said)

@@ -228,3 +228,13 @@ def test_direction_summary_resamples_whole_samples():
     assert direction_summary(np.full(16, 5.0), np.repeat([0, 1], 8))["within_25_ci"] == [1.0, 1.0]
     empty = direction_summary(np.array([]), np.array([]))
     assert math.isnan(empty["median"]) and math.isnan(empty["within_25_ci"][0])
+
+
+def test_the_median_of_an_even_count_is_the_mean_of_the_middle_two_and_nan_is_ignored():
+    from pipelines.evaluation.metrics import median, direction_summary
+
+    errors = torch.tensor([34.51, 71.54, float("nan")])
+    assert float(median(errors)) == pytest.approx((34.51 + 71.54) / 2)  # torch's median would say 34.51
+    assert float(median(torch.tensor([3.0, 1.0, 2.0]))) == 2.0 and median(torch.tensor([])).isnan()
+    summary = direction_summary(np.array([34.51, 71.54]), np.array([0, 1]))
+    assert summary["median_ci"][0] <= float(median(errors)) <= summary["median_ci"][1]
