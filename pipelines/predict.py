@@ -43,6 +43,7 @@ from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
+from .evaluation.prediction_figure import OVERVIEW, REPORT, write_overview, write_report
 from .model import framing
 from .model.model_input import MAX_LOG_RADIANCE, encoder_input
 from .training.refine import MAX_STEPS, refine_light
@@ -188,7 +189,8 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
         say(f"refining the light: {refine_steps} steps against the input view")
         with RefineProgress(refine_steps) as progress:
             pred, gain = refine_light(pred, cam.to(device), rgba[None].to(device),
-                                      make_renderer(config, seed=0, training=True), refine_steps, on_step=progress)
+                                      make_renderer(config, seed=0, training=True, device=device, eager=True),
+                                      refine_steps, on_step=progress)
     pred, gain = pred.to("cpu"), gain.cpu()  # written and rendered from here on the CPU
     light = pred.light(cam.world_to_camera)
     out.mkdir(parents=True, exist_ok=True)
@@ -209,12 +211,20 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     azimuths = azimuth + torch.arange(views) * (360.0 / views)
     cams = orbit(azimuths, 2 * size)
     repeated = pred.select([0] * views)
-    renders = make_renderer(config, seed=0, spp=spp)(repeated.meshes(), cams, repeated.material(),
-                                            repeated.light(cam.world_to_camera.expand(views, 4, 4))).image
+    renderer = make_renderer(config, seed=0, spp=spp, device="cpu", eager=True)
+    renders = renderer(repeated.meshes(), cams, repeated.material(),
+                       repeated.light(cam.world_to_camera.expand(views, 4, 4))).image
     strip = torch.cat([torch.cat([renders[i, ..., :3] * renders[i, ..., 3:], renders[i, ..., 3:]], -1)
                        for i in range(views)], 1)
     write_png(out / "novel_views.png", strip)
-    say(f"wrote {out}/: mesh.obj, mesh.mtl, texture.png, envmap.exr, material.json, novel_views.png")
+    input_view = orbit(azimuth, 2 * size)
+    write_overview(out / OVERVIEW, f"{image.name}: {config.shading.upper()} model {run}", rgba,
+                   renderer.render_normals(pred.meshes(), input_view).image[0],
+                   renderer.render_albedo(pred.meshes(), input_view, pred.material()).image[0],
+                   light.to_envmap(64, 128).image[0], list(renders))
+    write_report(out, material)
+    say(f"wrote {out}/: {OVERVIEW} and {REPORT} (open it), mesh.obj, mesh.mtl, texture.png, envmap.exr, "
+        "material.json, novel_views.png")
     return material
 
 

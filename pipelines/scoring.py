@@ -108,9 +108,9 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     config, model, iteration = loaded.config, loaded.model.to(device), loaded.iteration
     ds = MultiViewDataset(dataset or config.dataset, split=split, views_per_item=1)
     check_image_size(run, model.config.image_size, ds)
-    renderer = make_renderer(config, seed=0, spp=eval_spp)
+    renderer = make_renderer(config, seed=0, spp=eval_spp, device=device)
     views = strided_views(ds, view_stride)
-    refine = (refine_steps, make_renderer(config, seed=0, training=True)) if refine_steps else None
+    refine = (refine_steps, make_renderer(config, seed=0, training=True, device=device)) if refine_steps else None
     per_view, t0 = {}, time.perf_counter()
     for start in tqdm(range(0, len(views), batch), desc=f"eval {run}", unit="batch", leave=False):
         values, _ = predict_views(model, renderer, ds, [ds[i] for i in views[start:start + batch]], refine=refine)

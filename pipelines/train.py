@@ -141,6 +141,9 @@ def restore(ckpt: Path, model, opt) -> int:
     if saved.config != model.config:
         raise DataError(f"{ckpt} holds a model configured as {saved.config}, but this run asks for {model.config}; "
                         "choose another --out or the run's own settings")
+    if "optimizer" not in state:
+        raise DataError(f"{ckpt}: a shipped model (weights only, no optimizer state) cannot be resumed; train a run "
+                        "of your own (its card says how) and resume that")
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["optimizer"])
     torch.set_rng_state(state["torch_rng"])

@@ -1,8 +1,14 @@
 """Fixtures shared by the suites (tests/pipelines, tests/benchmarks): a tiny Cycles-rendered dataset."""
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+# torch.compile's cache (and its build locks) in this checkout, not in /tmp shared with every other clone and job on
+# the machine: a compile there waits up to 10 min on another process's lock. The tests' subprocesses inherit it.
+os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".cache" / "torchinductor"))
 
 
 def _tiny_glossy(out, objects: int, envmaps: int, envs_per_object: int, views: int):

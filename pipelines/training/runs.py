@@ -252,13 +252,22 @@ def fitted_pixel_normals(out: Path, model: Encoder, data, seed: int, progress: b
     net.requires_grad_(False)
 
 
-def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None) -> Renderer:
-    """The renderer of a run (``spp`` overrides the training spp, e.g. for evaluation). ``training``: the losses
-    read the soft mask, so the anti-aliased coverage (only the image's alpha) is not computed."""
+def make_renderer(config: TrainConfig, seed: int, training: bool = False, spp: int | None = None,
+                  device: str | None = None, eager: bool = False) -> Renderer:
+    """The renderer of a run (``spp`` overrides the training spp, e.g. for evaluation) on ``device`` (the run's
+    own by default). ``training``: the losses read the soft mask, so the anti-aliased coverage (only the image's
+    alpha) is not computed. ``eager``: no torch.compile (a few renders, which a compile would only delay)."""
     filter_width = 0.0 if training else RasterSettings.filter_width
     settings = RasterSettings(cull_backfaces=True, visibility="dibr", filter_width=filter_width)
     return Renderer(config.shading, spp=spp or config.spp, seed=seed, raster_settings=settings,
-                    compile=config.compile)
+                    compile=not eager and compiles(config, device or config.device, training))
+
+
+def compiles(config: TrainConfig, device: str, training: bool) -> bool:
+    """Whether the renderer goes through torch.compile (``config.compile``) where it pays: on the CPU always; on
+    CUDA only to train SG or SH, whose compile takes seconds there. Compiling MC on CUDA had not finished one step
+    after 110 s, and evaluation renders batches of several shapes, each a compile: eager CUDA starts at once."""
+    return config.compile and (str(device).startswith("cpu") or (training and config.shading != "mc"))
 
 
 SECOND_SAMPLES_SEED = 1_000_003  # offsets the seeds of the second samples' renders from every run's first ones

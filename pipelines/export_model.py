@@ -1,0 +1,141 @@
+"""Ship a trained run as a model a user can try without training: ``make models`` runs it for the models in models/.
+
+    python -m pipelines.export_model --run runs/glossy/sg-seed0 --metrics results/eval/glossy/sg-seed0.json \
+        --out models/glossy-sg
+
+Writes into --out a run folder that ``pipelines.predict`` and ``pipelines.evaluate`` read like any other:
+``checkpoint.pt`` (the model's weights in half precision, no optimizer state: a fifth of the run's checkpoint),
+``config.json`` and ``camera.json`` as trained, and ``MODEL_CARD.md``: the data, the recipe, the code's commit, the
+test-split metrics from the run's evaluation (``pipelines.evaluate``'s JSON) and the command that retrains it.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from dibrpp.cli_args import Parser, check_output_folder
+from dibrpp.formatting import format_number, markdown_table
+from dibrpp.io import DataError, atomic_path
+
+from .evaluation.summary import CONSTANT_REFERENCES
+from .training.runs import CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_run, read_checkpoint, read_json
+
+REPO = Path(__file__).resolve().parents[1]
+CARD = "MODEL_CARD.md"
+# the card's metrics: (key, what it is); a light metric's constant-map score is shown beside it
+CARD_METRICS = [("image_whole", "image L1, whole image"), ("iou", "2D IoU loss"), ("texture", "texture 1-NCC"),
+                ("normal_deg", "normal error (°, median)"), ("light_ldr", "light eq. 9 (LDR maps)"),
+                ("probe_metal", "rough-metal probe si-RMSE"), ("probe_mirror", "mirror probe si-RMSE"),
+                ("direction_deg", "dominant light direction (°, median)")]
+
+
+def half_precision(state: dict, parameters: set[str]) -> dict:
+    """The model's learnt parameters in float16 (predict and evaluate load them into float32); buffers (the
+    template mesh, its UVs, fixed bases) stay as they are."""
+    return {k: v.half() if k in parameters and v.is_floating_point() else v for k, v in state.items()}
+
+
+def git_commit() -> str:
+    """The checkout's commit, marked '-dirty' where tracked files differ from it ('unknown' outside git)."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "dibrpp", "datagen", "pipelines"],
+                               cwd=REPO).returncode != 0
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + ("-dirty" if dirty else "")
+
+
+def metrics_table(metrics: dict) -> str:
+    rows = []
+    for key, what in CARD_METRICS:
+        value = metrics.get(key)
+        constant = metrics.get(f"{key}_constant") if f"{key}_constant" in CONSTANT_REFERENCES else None
+        rows.append([what, format_number(value, ".3g") if value is not None else "—",
+                     format_number(constant, ".3g") if constant is not None else ""])
+    return markdown_table(["test split", "this model", "a constant map"], rows)
+
+
+def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: int, seconds: float | None,
+               commit: str, retrain: str) -> str:
+    dataset = Path(config["dataset"]).name
+    took = f", {seconds / 60:.0f} min on the machine that trained it" if seconds else ""
+    return "\n".join([
+        f"# {name}", "",
+        f"DIB-R++'s single-image model as this repository trains it by default: **{config['shading'].upper()} shading, "
+        f"{config['lobes']} lobes**, trained on the `{dataset}` set (Blender Cycles, `make data-{dataset}`) for "
+        f"{iteration} iterations, seed {config['seed']}{took}.", "",
+        f"- **Input:** one {camera.get('image_size', '')}{'²' if camera.get('image_size') else ''} view of a car of "
+        f"that set's kind, its mask as alpha; the training camera: distance {camera['distance']:g}, elevation "
+        f"{camera['elevation_deg']:g}°, field of view {camera['fov_deg']:.1f}°, the object spanning "
+        f"{camera.get('object_fill', 0):.0%} of the frame.",
+        "- **Output:** a mesh (the template deformed), an albedo texture, roughness / specular"
+        f"{' / metallic' if config.get('predict_metallic') else ''}, the light as {config['lobes']} SG lobes "
+        "(world frame, written as an env map).",
+        f"- **Code:** commit `{commit}`; weights in half precision (evaluated as shipped).",
+        f"- **Retrain:** `{retrain}`", "",
+        f"## Test split of `{dataset}` ({metrics.get('test_views', '?')} views; `make eval`'s metrics)", "",
+        metrics_table(metrics), "",
+        "Lower is better everywhere. What the numbers mean and how they compare with the paper: docs/evaluation.md "
+        "and docs/results.md.", "",
+        "## What to expect", "",
+        "Objects like the training set's, cut out, seen from about the training elevation. A photo of something "
+        "else gives a car-like shape; an 8-bit photo clips the highlights the light is read from, so an EXR of the "
+        "view places the light better (docs/evaluation.md, prediction on your own image).", ""])
+
+
+def export(run: Path, metrics_path: Path, out: Path, retrain: str, commit: str | None = None) -> Path:
+    loaded = load_run(run)  # refuses a broken run before anything is written
+    metrics = read_json(metrics_path, "evaluation")
+    if not isinstance(metrics, dict) or Path(str(metrics.get("run", ""))).resolve() != loaded.folder.resolve():
+        raise DataError(f"--metrics {metrics_path}: not pipelines.evaluate's result for {run}; evaluate the run "
+                        f"(python -m pipelines.evaluate --runs {run}) and pass its JSON")
+    if metrics.get("split") != "test":
+        raise DataError(f"--metrics {metrics_path}: evaluated on the {metrics.get('split')} split; the card reports "
+                        "the test split")
+    state = read_checkpoint(run / CHECKPOINT)
+    parameters = {name for name, _ in loaded.model.named_parameters()}
+    shipped = {"model": half_precision(state["model"], parameters), "model_config": state["model_config"],
+               "iteration": state["iteration"], "config": state.get("config")}
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / CHECKPOINT) as tmp:
+        torch.save(shipped, tmp)
+    for name in (CONFIG, CAMERA):
+        shutil.copyfile(run / name, out / name)
+    summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}
+    camera = {**read_json(run / CAMERA, "camera set-up"), "image_size": loaded.model.config.image_size}
+    card = model_card(out.name, read_json(run / CONFIG, "config"), camera, metrics, loaded.iteration,
+                      summary.get("seconds"), commit or git_commit(), retrain)
+    with atomic_path(out / CARD) as tmp:
+        tmp.write_text(card)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = Parser(prog="python -m pipelines.export_model", description=__doc__)
+    ap.add_argument("--run", required=True, type=Path, metavar="DIR", help="a trained run folder")
+    ap.add_argument("--metrics", required=True, type=Path, metavar="JSON",
+                    help="the run's test-split result from pipelines.evaluate (results/eval/<dataset>/<run>.json)")
+    ap.add_argument("--out", required=True, type=Path, metavar="DIR", help="the model's folder (made if missing)")
+    ap.add_argument("--retrain", default="", metavar="COMMAND", help="the command that retrains it, for the card")
+    ap.add_argument("--commit", metavar="SHA", help="the code's commit, for the card (default: this checkout's)")
+    args = ap.parse_args(argv)
+    try:
+        check_output_folder("--out", args.out)
+        out = export(args.run, args.metrics, args.out, args.retrain or f"python -m pipelines.train --out {args.run}",
+                     args.commit)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    size = (out / CHECKPOINT).stat().st_size / 2 ** 20
+    print(f"wrote {out}/: {CHECKPOINT} ({size:.1f} MiB), {CONFIG}, {CAMERA}, {CARD}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
