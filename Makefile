@@ -21,11 +21,13 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
+.PHONY: models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~7.5 h)"
 	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~25 min)"
+	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
+	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
@@ -155,6 +157,25 @@ reproduce: data
 	@$(MAKE) --no-print-directory train-ablations
 	@$(MAKE) --no-print-directory train-published
 	@$(MAKE) --no-print-directory eval
+
+# The models that ship in models/ (what `make demo` and the README's predict command use without training): the
+# default SG run on each of MODEL_SETS, trained and evaluated as above, then written in half precision with a model
+# card each (pipelines.export_model). Resumable; its outputs are committed.
+MODEL_SETS ?= glossy metallic
+models: $(VENV)/.installed
+	@set -e; for d in $(MODEL_SETS); do \
+	  $(MAKE) --no-print-directory data-$$d; \
+	  $(MAKE) --no-print-directory train-$$d METHODS=sg SEEDS=; \
+	  $(PY) -m pipelines.evaluate --runs $(RUNS)/$$d/sg-seed0 --out results/eval; \
+	  $(PY) -m pipelines.export_model --run $(RUNS)/$$d/sg-seed0 --metrics results/eval/$$d/sg-seed0.json \
+	    --out models/$$d-sg --retrain "make models MODEL_SETS=$$d"; \
+	done
+
+# The shipped glossy model on the example photo (examples/car_photo.exr: Cycles, 15 degrees up, azimuth 30):
+# results/demo/overview.png and report.html, in seconds.
+demo: $(VENV)/.installed
+	$(PY) -m pipelines.predict --checkpoint models/glossy-sg --image examples/car_photo.exr --elevation 15 \
+	  --azimuth 30 --out results/demo
 
 # A first look: the glossy set, SG, seed 0, evaluated.
 first-look: data-glossy

@@ -274,6 +274,7 @@ def check_train_args(text: str) -> tuple[str, ...]:
     """--train-args as pipelines.train reads them, checked before anything renders or trains."""
     ap = Parser(prog="--train-args")
     ap.add_argument("--preset", choices=sorted(PRESETS))
+    ap.add_argument("--threads", type=int)
     add_config_arguments(ap)
     words = tuple(text.split())
     try:

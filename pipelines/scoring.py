@@ -20,6 +20,7 @@ from .evaluation.summary import NOVEL_AZIMUTHS
 from .model.model_input import encoder_input
 from .training.refine import refine_light
 from .training.runs import check_image_size, load_run, make_renderer
+from .training.variants import VARIANTS
 
 FAILURE_METRICS = ("image_foreground", "iou", "light_hdr", "texture", "chamfer", "probe_metal")
 # a split with fewer samples (objects under a map) gives means that say little: the direction's intervals
@@ -137,6 +138,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
                   shading=config.shading, lobes=config.lobes,
                   seed=config.seed, iteration=iteration, trained_iterations=config.iterations, test_views=len(views),
                   view_stride=view_stride, variant=config.label(), split=split, refine_steps=refine_steps,
+                  variant_kind=VARIANTS[config.variant].kind if config.variant in VARIANTS else "",
                   seconds_per_view=(time.perf_counter() - t0) / len(views))
     shown = figure_views(ds)
     worst = {k: views[int(per_view[k].argmax())] for k in FAILURE_METRICS}

@@ -29,7 +29,7 @@ import torch
 import torch.distributed as dist
 
 from datagen.reader import MultiViewDataset
-from dibrpp.cli_args import Parser, check_output_folder
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_int
 from dibrpp.display import display_image, tonemap_envmap
 from dibrpp.formatting import pyplot, save_figure
 from dibrpp.io import DataError, write_png
@@ -85,7 +85,7 @@ def _setup_distributed():
 
 
 # settings a resumed run may change: how long it trains and how it reports, not what it trains
-CHANGEABLE_ON_RESUME = ("iterations", "log_every", "checkpoint_every", "threads", "compile", "out", "device")
+CHANGEABLE_ON_RESUME = ("iterations", "log_every", "checkpoint_every", "compile", "out", "device")
 
 
 def check_resumable(run: Path, config: TrainConfig) -> None:
@@ -151,16 +151,17 @@ def restore(ckpt: Path, model, opt) -> int:
 
 
 def train(config: TrainConfig, resume: bool = False, progress: bool = True,
-          dataset: MultiViewDataset | None = None) -> dict:
-    """Train (or with ``resume`` continue) the run ``config.out``; ``dataset``: its training split, if open."""
+          dataset: MultiViewDataset | None = None, threads: int = 0) -> dict:
+    """Train (or with ``resume`` continue) the run ``config.out``; ``dataset``: its training split, if open;
+    ``threads``: torch's threads in this process (0: torch's default, one per core)."""
     config.validate()
     rank, world = _setup_distributed()
     if config.device == "cuda" and world > 1:
         raise ValueError("--device cuda trains in one process; data-parallel runs (torchrun) are CPU-only so far")
     if config.device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
-    if config.threads:
-        torch.set_num_threads(config.threads)
+    if threads:
+        torch.set_num_threads(threads)
     if rank == 0 and config.device == "cpu":
         warn_if_cores_are_busy(torch.get_num_threads())
     out = Path(config.out)
@@ -339,6 +340,9 @@ def main(argv=None) -> int:
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint, with the "
                     "settings in its config.json (a flag that changes what it trains is refused)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ap.add_argument("--threads", type=non_negative_int, default=0, metavar="N",
+                    help="torch threads in this process (0: torch's default, one per core; a run warns when other "
+                         "processes keep a core busy, which slows every step several times)")
     ap.add_argument("--list-variants", action="store_true", help="print the named variants and exit")
     ap.add_argument("--variant-runs", metavar="KINDS", help="print 'dataset variant seed' of every run of the "
                     "variants of these comma-separated kinds (ablation, diagnostic, paper, published) and exit: make's loops")
@@ -350,7 +354,7 @@ def main(argv=None) -> int:
             return 0
         config, ds = parse_config(args)
         check_output_folder("--out", Path(config.out))
-        train(config, resume=args.resume, progress=not args.no_progress, dataset=ds)
+        train(config, resume=args.resume, progress=not args.no_progress, dataset=ds, threads=args.threads)
     except (DataError, ValueError, FileExistsError, FloatingPointError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

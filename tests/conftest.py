@@ -9,6 +9,9 @@ import pytest
 # torch.compile's cache (and its build locks) in this checkout, not in /tmp shared with every other clone and job on
 # the machine: a compile there waits up to 10 min on another process's lock. The tests' subprocesses inherit it.
 os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".cache" / "torchinductor"))
+# One torch thread per process: pytest-xdist runs a worker per core, and torch's threads wait on each other at every
+# step when they outnumber the cores (a training step several times slower). Runs repeat bit for bit at one thread.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 def _tiny_glossy(out, objects: int, envmaps: int, envs_per_object: int, views: int):

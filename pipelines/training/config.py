@@ -89,8 +89,6 @@ class TrainConfig:
     # device
     device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
                        ("cpu", "cuda"))
-    threads: int = _opt(0, "torch threads per process (0: torch's default, one per core; a run warns when other "
-                        "processes keep a core busy, which slows every step several times)", minimum=0)
     compile: bool = _opt(True, "G-buffer and shading through torch.compile (eager where it cannot)")
 
     def validate(self) -> "TrainConfig":

@@ -70,6 +70,8 @@ SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"
 # training options of experiments that left the code later, the model unchanged, by the last commit with their code:
 # the value(s) under which the run is the default model
 LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}}
+# settings of how a run ran, not of what it trains, that left the config for a flag of train: dropped, any value
+RUN_SETTINGS_LEFT = ("threads",)
 
 
 def _drop_retired(values: dict, retired: dict, commit: str = LAST_COMMIT) -> None:
@@ -85,6 +87,8 @@ def without_options_left_later(saved: dict) -> dict:
     values = dict(saved)
     for commit, retired in LEFT_LATER.items():
         _drop_retired(values, retired, commit)
+    for name in RUN_SETTINGS_LEFT:
+        values.pop(name, None)
     return values
 
 

@@ -6,7 +6,7 @@ from pipelines.evaluation import tables
 
 
 def write_run(root, dataset, shading, seed, light, lobes=32, image=0.03, light_constant=0.35, probe_metal=0.3,
-              kind="", split="test", light_hdr=0.9, variant=""):
+              kind="", split="test", light_hdr=0.9, variant="", variant_kind=""):
     """A result file; ``light`` is eq. 9 on LDR maps (the paper's column), on HDR maps it is 0.9 (and 0.95 for the
     constant map) unless ``light_hdr`` says; ``kind``: the manifest's dataset (default: the folder's name)."""
     d = root / dataset
@@ -16,7 +16,7 @@ def write_run(root, dataset, shading, seed, light, lobes=32, image=0.03, light_c
              light_hdr=light_hdr, texture=0.2, chamfer=0.01, light_ldr_constant=light_constant, light_hdr_constant=0.95,
              probe_diffuse=0.1, probe_metal=probe_metal, probe_mirror=0.8, colour_deg=4.0, direction_deg=25.0,
              probe_diffuse_constant=0.3, probe_metal_constant=0.5, probe_mirror_constant=0.9, colour_deg_constant=8.0,
-             direction_deg_constant=60.0, variant=variant)
+             direction_deg_constant=60.0, variant=variant, variant_kind=variant_kind)
     (d / f"{shading}-{variant}k{lobes}-seed{seed}.json").write_text(json.dumps(r))
 
 
@@ -174,8 +174,8 @@ def test_a_value_too_small_for_three_decimals_is_not_printed_as_zero():
 def test_table_e_takes_the_lobe_count_variants_and_not_other_ablations(tmp_path):
     write_run(tmp_path, "glossy", "sg", 0, light=0.20)
     for k, light in ((4, 0.30), (8, 0.22), (16, 0.21)):  # `--variant kN`, as make train-ablations trains them
-        write_run(tmp_path, "glossy", "sg", 0, light=light, lobes=k, variant=f"k{k}")
-    write_run(tmp_path, "glossy", "sg", 0, light=0.078, variant="global-light")  # an ablation: not a paper row
+        write_run(tmp_path, "glossy", "sg", 0, light=light, lobes=k, variant=f"k{k}", variant_kind="paper")
+    write_run(tmp_path, "glossy", "sg", 0, light=0.078, variant="global-light", variant_kind="ablation")  # not a paper row
     md = tables.write_tables(tmp_path)
     table_e = md[md.index("**Table E"):md.index("**Table F")]
     assert "missing" not in table_e and "| K = 4 | 0.030 |" in table_e

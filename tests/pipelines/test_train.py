@@ -29,7 +29,7 @@ def TrainingData(root, image_size, **kw):  # noqa: N802 (the training split's te
 
 def config(data, out, **kw):
     base = dict(dataset=str(data), out=str(out), iterations=8, batch_objects=2, spp=2, log_every=1,
-                checkpoint_every=4, lr=1e-3, threads=1)
+                checkpoint_every=4, lr=1e-3)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -616,7 +616,7 @@ def test_the_published_model_regresses_its_light_and_texture_and_trains(tiny_glo
     from pipelines.training.variants import PUBLISHED, VARIANTS
 
     cfg = TrainConfig.from_dict(dict(dataset=str(tiny_glossy), out=str(tmp_path / "p"), lobes=4, iterations=2,
-                                     batch_objects=2, threads=1, variant="published"))
+                                     batch_objects=2, variant="published"))
     assert {k: getattr(cfg, k) for k in PUBLISHED} == PUBLISHED and cfg.label() == "published"
     assert len(VARIANTS) <= 15
     model = train(cfg, progress=False)["model"]
