@@ -159,16 +159,15 @@ reproduce: data
 	@$(MAKE) --no-print-directory eval
 
 # The models that ship in models/ (what `make demo` and the README's predict command use without training): the
-# default SG run on each of MODEL_SETS, trained and evaluated as above, then written in half precision with a model
-# card each (pipelines.export_model). Resumable; its outputs are committed.
+# default SG run on each of MODEL_SETS, trained as above, then written in half precision, evaluated as shipped and
+# given a model card (pipelines.export_model). Resumable; its outputs are committed.
 MODEL_SETS ?= glossy metallic
 models: $(VENV)/.installed
 	@set -e; for d in $(MODEL_SETS); do \
 	  $(MAKE) --no-print-directory data-$$d; \
 	  $(MAKE) --no-print-directory train-$$d METHODS=sg SEEDS=; \
-	  $(PY) -m pipelines.evaluate --runs $(RUNS)/$$d/sg-seed0 --out results/eval; \
-	  $(PY) -m pipelines.export_model --run $(RUNS)/$$d/sg-seed0 --metrics results/eval/$$d/sg-seed0.json \
-	    --out models/$$d-sg --retrain "make models MODEL_SETS=$$d"; \
+	  $(PY) -m pipelines.export_model --run $(RUNS)/$$d/sg-seed0 --out models/$$d-sg \
+	    --retrain "make models MODEL_SETS=$$d"; \
 	done
 
 # The shipped glossy model on the example photo (examples/car_photo.exr: Cycles, 15 degrees up, azimuth 30):

@@ -8,8 +8,8 @@ default distance of 3 sees all of it from any direction. ``examples/sky.exr``: a
 above a grey ground, with a warm sun; linear RGB, Blender's orientation (+Z up, +X at the centre). Both are
 deterministic. ``examples/car_photo.exr`` (linear RGBA) and ``car_photo.png`` (8-bit sRGB RGBA): the car as a
 photo of it would frame it, the input of ``make demo``: rendered by Blender Cycles at 256 x 256 and cropped to
-256 x 208, a red glossy paint, under the sky, from 15 degrees of elevation at 45 units (the datasets' cameras: 27
-degrees at 60, their objects scaled into [-18, 18]), so that the car fills the frame far more than in training.
+256 x 208, a red glossy paint, under the sky, from 15 degrees of elevation at 80 units (the datasets' cameras: 27
+degrees at 60, their objects scaled into [-18, 18]): the car smaller in the frame than in training, and off-centre.
 """
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ SUN_ELEVATION, SUN_AZIMUTH, SUN_RADIUS = 40.0, 70.0, 3.0  # degrees; the sun lig
 SUN_RADIANCE = np.array([400.0, 370.0, 320.0])  # 2.5 times the sky's irradiance on the ground
 SUPERSAMPLE = 4  # per texel side: the sun disc's edge is averaged, not aliased
 # the photo: the datasets' object scale and field of view, another elevation and distance
-PHOTO_SCALE, PHOTO_FOV, PHOTO_ELEVATION, PHOTO_AZIMUTH, PHOTO_DISTANCE = 18.0, 39.6, 15.0, 30.0, 45.0
-PHOTO_SIDE, PHOTO_ROWS = 256, (24, 232)  # rendered square, then cropped to a landscape photo
+PHOTO_SCALE, PHOTO_FOV, PHOTO_ELEVATION, PHOTO_AZIMUTH, PHOTO_DISTANCE = 18.0, 39.6, 15.0, 30.0, 80.0
+PHOTO_SIDE, PHOTO_ROWS = 256, (40, 248)  # rendered square, then cropped to a landscape photo, the car off-centre
 PHOTO_PAINT = dict(base_color=(0.55, 0.04, 0.03), roughness=0.25, metallic=0.0, specular_ior_level=0.5)
 
 

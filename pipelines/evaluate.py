@@ -37,7 +37,7 @@ from dibrpp.io import DataError, atomic_path
 from .evaluation.report import evaluated_runs, write_report
 from .evaluation.summary import LIGHT_METRICS, METRICS, write_direction_figures, write_figure, write_table
 from .evaluation.tables import write_tables
-from .scoring import evaluate_run, split_warnings
+from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run, split_warnings
 from .training.refine import MAX_STEPS
 from .training.runs import checkpoint_digest, find_runs, load_config
 
@@ -180,9 +180,11 @@ def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.evaluate", description=__doc__)
     ap.add_argument("--runs", default="runs", metavar="DIR", help="folder of run folders (or one run folder) (default: runs)")
     ap.add_argument("--out", default="results/eval", metavar="DIR", help="results folder (default: results/eval)")
-    ap.add_argument("--spp", type=positive_int, default=64, metavar="N", help="MC samples per pixel for the re-renderings (default: 64)")
-    ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
-                    help="evaluate every n-th view of each test sample (default 3: 8 of the 24 views, every 45 degrees)")
+    ap.add_argument("--spp", type=positive_int, default=EVAL_SPP, metavar="N",
+                    help=f"MC samples per pixel for the re-renderings (default: {EVAL_SPP})")
+    ap.add_argument("--view-stride", type=positive_int, default=EVAL_VIEW_STRIDE, metavar="N",
+                    help=f"evaluate every n-th view of each test sample (default {EVAL_VIEW_STRIDE}: 8 of the 24 views, "
+                         "every 45 degrees)")
     ap.add_argument("--split", choices=("test", "train", "all"), default="test",
                     help="the views to evaluate on: test (unseen objects and maps), train (the train/test gap; "
                          "use another --out) or all (every sample of a --dataset no run trained on, e.g. make "

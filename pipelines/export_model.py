@@ -1,15 +1,16 @@
 """Ship a trained run as a model a user can try without training: ``make models`` runs it for the models in models/.
 
-    python -m pipelines.export_model --run runs/glossy/sg-seed0 --metrics results/eval/glossy/sg-seed0.json \
-        --out models/glossy-sg
+    python -m pipelines.export_model --run runs/glossy/sg-seed0 --out models/glossy-sg
 
 Writes into --out a run folder that ``pipelines.predict`` and ``pipelines.evaluate`` read like any other:
 ``checkpoint.pt`` (the model's weights in half precision, no optimizer state: a fifth of the run's checkpoint),
-``config.json`` and ``camera.json`` as trained, and ``MODEL_CARD.md``: the data, the recipe, the code's commit, the
-test-split metrics from the run's evaluation (``pipelines.evaluate``'s JSON) and the command that retrains it.
+``config.json`` and ``camera.json`` as trained, ``metrics.json`` (the shipped weights evaluated on the test split of
+the run's dataset as ``make eval`` evaluates, ~1 min) and ``MODEL_CARD.md``: the data, the recipe, the code's
+commit, those metrics and the command that retrains it.
 """
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -22,10 +23,11 @@ from dibrpp.formatting import format_number, markdown_table
 from dibrpp.io import DataError, atomic_path
 
 from .evaluation.summary import CONSTANT_REFERENCES
+from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run
 from .training.runs import CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_run, read_checkpoint, read_json
 
 REPO = Path(__file__).resolve().parents[1]
-CARD = "MODEL_CARD.md"
+CARD, METRICS = "MODEL_CARD.md", "metrics.json"
 # the card's metrics: (key, what it is); a light metric's constant-map score is shown beside it
 CARD_METRICS = [("image_whole", "image L1, whole image"), ("iou", "2D IoU loss"), ("texture", "texture 1-NCC"),
                 ("normal_deg", "normal error (°, median)"), ("light_ldr", "light eq. 9 (LDR maps)"),
@@ -72,8 +74,8 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         f"{iteration} iterations, seed {config['seed']}{took}.", "",
         f"- **Input:** one {camera.get('image_size', '')}{'²' if camera.get('image_size') else ''} view of a car of "
         f"that set's kind, its mask as alpha; the training camera: distance {camera['distance']:g}, elevation "
-        f"{camera['elevation_deg']:g}°, field of view {camera['fov_deg']:.1f}°, the object spanning "
-        f"{camera.get('object_fill', 0):.0%} of the frame.",
+        f"{camera['elevation_deg']:g}°, field of view {camera['fov_deg']:.1f}°; `predict` frames a photo's object as "
+        "these views frame theirs (`--framing`).",
         "- **Output:** a mesh (the template deformed), an albedo texture, roughness / specular"
         f"{' / metallic' if config.get('predict_metallic') else ''}, the light as {config['lobes']} SG lobes "
         "(world frame, written as an env map).",
@@ -89,15 +91,8 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         "view places the light better (docs/evaluation.md, prediction on your own image).", ""])
 
 
-def export(run: Path, metrics_path: Path, out: Path, retrain: str, commit: str | None = None) -> Path:
+def export(run: Path, out: Path, retrain: str, commit: str | None = None) -> Path:
     loaded = load_run(run)  # refuses a broken run before anything is written
-    metrics = read_json(metrics_path, "evaluation")
-    if not isinstance(metrics, dict) or Path(str(metrics.get("run", ""))).resolve() != loaded.folder.resolve():
-        raise DataError(f"--metrics {metrics_path}: not pipelines.evaluate's result for {run}; evaluate the run "
-                        f"(python -m pipelines.evaluate --runs {run}) and pass its JSON")
-    if metrics.get("split") != "test":
-        raise DataError(f"--metrics {metrics_path}: evaluated on the {metrics.get('split')} split; the card reports "
-                        "the test split")
     state = read_checkpoint(run / CHECKPOINT)
     parameters = {name for name, _ in loaded.model.named_parameters()}
     shipped = {"model": half_precision(state["model"], parameters), "model_config": state["model_config"],
@@ -107,6 +102,10 @@ def export(run: Path, metrics_path: Path, out: Path, retrain: str, commit: str |
         torch.save(shipped, tmp)
     for name in (CONFIG, CAMERA):
         shutil.copyfile(run / name, out / name)
+    print(f"evaluating the shipped weights in {out} on the test split of {loaded.config.dataset}", flush=True)
+    metrics, _ = evaluate_run(out, eval_spp=EVAL_SPP, view_stride=EVAL_VIEW_STRIDE)
+    with atomic_path(out / METRICS) as tmp:
+        tmp.write_text(json.dumps(metrics, indent=1))
     summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}
     camera = {**read_json(run / CAMERA, "camera set-up"), "image_size": loaded.model.config.image_size}
     card = model_card(out.name, read_json(run / CONFIG, "config"), camera, metrics, loaded.iteration,
@@ -119,21 +118,18 @@ def export(run: Path, metrics_path: Path, out: Path, retrain: str, commit: str |
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.export_model", description=__doc__)
     ap.add_argument("--run", required=True, type=Path, metavar="DIR", help="a trained run folder")
-    ap.add_argument("--metrics", required=True, type=Path, metavar="JSON",
-                    help="the run's test-split result from pipelines.evaluate (results/eval/<dataset>/<run>.json)")
     ap.add_argument("--out", required=True, type=Path, metavar="DIR", help="the model's folder (made if missing)")
     ap.add_argument("--retrain", default="", metavar="COMMAND", help="the command that retrains it, for the card")
     ap.add_argument("--commit", metavar="SHA", help="the code's commit, for the card (default: this checkout's)")
     args = ap.parse_args(argv)
     try:
         check_output_folder("--out", args.out)
-        out = export(args.run, args.metrics, args.out, args.retrain or f"python -m pipelines.train --out {args.run}",
-                     args.commit)
+        out = export(args.run, args.out, args.retrain or f"python -m pipelines.train --out {args.run}", args.commit)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     size = (out / CHECKPOINT).stat().st_size / 2 ** 20
-    print(f"wrote {out}/: {CHECKPOINT} ({size:.1f} MiB), {CONFIG}, {CAMERA}, {CARD}")
+    print(f"wrote {out}/: {CHECKPOINT} ({size:.1f} MiB), {CONFIG}, {CAMERA}, {METRICS}, {CARD}")
     return 0
 
 

@@ -10,17 +10,18 @@ The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits; or a li
 channel (the object's mask), as the datasets have; an image without one is accepted only with
 ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
 foreground extraction for renders on a flat background), or with ``--mask FILE`` (a grey or RGBA image of the same
-size: white, or opaque, is the object). Any size from 8 x 8 pixels is taken: by default (``--framing object``) the
-object is cropped and centred the way the training views frame it (its box spans the share of the frame it spans
-there, ``object_fill`` in the run's ``camera.json``); ``--framing as-is`` pads the image to a square as it is. Then
-it is resized to the model's input. Its radiance must be finite, non-negative and at most
+size: white, or opaque, is the object). Any size from 8 x 8 pixels is taken. The model reads an object's size in
+the frame as its size and has no translation of its own, so the image is framed as the training views frame their
+object (``pipelines.model.framing``: its size and centroid, recorded in the run's ``camera.json``): ``--framing
+auto`` (the default) keeps an image whose object already sits as theirs do (a dataset's view) and crops and pads
+any other; ``object`` always re-frames, ``as-is`` never (it pads to a square). Then it is resized to the model's. Its radiance must be finite, non-negative and at most
 exp(12) ~ 1.6e5, the brightest light the model predicts (a scaled EXR is refused, not read as a brighter sun).
 Give a linear EXR where you have one: the model reads the input's full range, and a sun's reflection that an
 8-bit picture clips at 1 is where it finds the sun (docs/experiments.md, entry 13).
 The input camera is an orbit camera looking at the object's centre: ``--azimuth``, ``--elevation``, ``--fov`` and
 ``--distance``, each the training set-up's (``camera.json``) unless given. The elevation sets which way is up in the
-predicted light; the field of view and distance set the perspective the shape is read with (with ``--framing
-object`` the crop keeps the object's size in the frame as in training, whatever the photo's zoom).
+predicted light; the field of view and distance set the perspective the shape is read with (a re-framed image
+keeps the object's size in the frame as in training, whatever the photo's zoom).
 
 What a photo can give: the model has seen procedural cars (or heads) of its dataset, on their own, from one
 elevation and distance, under its env maps. A photo of a similar object, cut out, gives a shape, an albedo and a
@@ -55,7 +56,6 @@ MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
 MAX_RADIANCE = math.exp(MAX_LOG_RADIANCE)
 LONG_REFINEMENT_S = 30.0  # a refinement expected to take longer is announced with its estimate
 MAX_VIEWS, MAX_SPP = 72, 4096  # novel views (every 5 degrees) and their MC samples: more only fills the memory
-FILL_WARNING = 1.5  # an object spanning this many times more (or less) of the frame than in training is warned of
 
 
 def say(message: str) -> None:
@@ -141,17 +141,26 @@ def pad_to_square(img: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
 
 
-def frame_input(path, rgba: torch.Tensor, trained_fill: float | None, mode: str) -> torch.Tensor:
-    """The image framed for the model (``--framing``): re-framed as the training views are, or as it is (with a
-    warning when its object spans a very different share of the frame)."""
-    if mode == "object" and trained_fill:
-        return framing.reframe(rgba, trained_fill)
-    if mode == "object":
-        say(f"note: the run records no object_fill (trained before it was recorded); {path} is used as framed")
-    fill = framing.image_fill(rgba[..., 3])
-    if trained_fill and not 1 / FILL_WARNING <= fill / trained_fill <= FILL_WARNING:
-        say(f"warning: the object spans {fill:.0%} of {path}'s frame against {trained_fill:.0%} in the training views; "
-            "the shape is read at the wrong scale: use --framing object (the default)")
+def frame_input(path, rgba: torch.Tensor, trained: dict, mode: str) -> torch.Tensor:
+    """The image framed for the model (``--framing``; ``trained``: the run's camera.json): as the training views
+    frame their object (object), as it is (as-is), or as it is unless its object's size or place differs from the
+    training views' beyond their spread (auto), each said where it matters."""
+    if "object_size" not in trained:
+        if mode == "object":
+            say(f"note: the run records no framing of its training views (trained before it was recorded); {path} "
+                "is used as framed")
+        return rgba
+    seen = framing.image_framing(rgba[..., 3])
+    like = framing.frames_like(seen, trained)
+    if mode == "object" or (mode == "auto" and not like):
+        if mode == "auto":
+            say(f"note: the object spans {seen['object_size'] / trained['object_size']:.2f}x the training views' size "
+                f"in {path}, centred at {seen['object_centre'][0]:.2f}, {seen['object_centre'][1]:.2f} (theirs "
+                f"{trained['object_centre'][0]:.2f}, {trained['object_centre'][1]:.2f}): re-framed as they frame it")
+        return framing.reframe(rgba, trained)
+    if not like:
+        say(f"warning: the object in {path} is framed unlike the training views' (size {seen['object_size']:.2f} of the "
+            f"side against {trained['object_size']:.2f}); the model reads its size as the car's: use --framing auto")
     return rgba
 
 
@@ -165,7 +174,7 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64, refine_steps: int = 0, device: str = "cpu", elevation: float | None = None,
-            fov: float | None = None, distance: float | None = None, framing_mode: str = "object", mask=None) -> dict:
+            fov: float | None = None, distance: float | None = None, framing_mode: str = "auto", mask=None) -> dict:
     check_output_folder("--out", out)
     image_rgba = read_input(image, background, tolerance, mask)  # a bad image is refused before the model loads
     say(f"loading {run}")
@@ -177,7 +186,7 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                  elevation_deg=trained["elevation_deg"] if elevation is None else elevation,
                  fov_deg=trained["fov_deg"] if fov is None else fov)
     orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
-    rgba = resize_input(frame_input(image, image_rgba, trained.get("object_fill"), framing_mode), size)
+    rgba = resize_input(frame_input(image, image_rgba, trained, framing_mode), size)
     if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
         say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
             "the full range and places the light best from a linear EXR of the same view")
@@ -277,9 +286,10 @@ def build_parser() -> Parser:
     ap.add_argument("--distance", type=float_in(0.0, 1e4, open_low=True), metavar="D",
                     help="distance of the input camera from the object's centre, in the data's units (default: the "
                          "training data's)")
-    ap.add_argument("--framing", choices=("object", "as-is"), default="object",
-                    help="object: crop and centre the object as the training views frame it; as-is: pad the image "
-                         "to a square as it is (default: object)")
+    ap.add_argument("--framing", choices=("auto", "object", "as-is"), default="auto",
+                    help="object: crop and pad the image so that its object has the training views' size and place; "
+                         "as-is: pad it to a square as it is; auto: as-is where the object already sits about as in "
+                         "the training views (a dataset's view), else object (default: auto)")
     ap.add_argument("--mask", metavar="FILE", help="the object's mask as an image of the input's size (white or opaque: "
                     "the object), for an image without alpha")
     ap.add_argument("--background", type=unit_rgb, metavar="R,G,B",

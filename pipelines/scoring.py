@@ -26,6 +26,7 @@ FAILURE_METRICS = ("image_foreground", "iou", "light_hdr", "texture", "chamfer",
 # a split with fewer samples (objects under a map) gives means that say little: the direction's intervals
 # resample whole samples
 MIN_SAMPLES = 10
+EVAL_SPP, EVAL_VIEW_STRIDE = 64, 3  # make eval's: MC samples of the re-renderings; every 3rd view (every 45 degrees)
 FIGURE_ROWS = 4
 METRIC_NAMES = {"image_foreground": "image L1 (foreground)", "iou": "2D IoU loss", "light_hdr": "light 1-NCC (HDR)",
                 "texture": "tex 1-NCC", "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}

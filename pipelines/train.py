@@ -38,7 +38,7 @@ from dibrpp.mesh import uniform_laplacian
 from .training import runs
 from .training.config import (PRESETS, ConfigError, TrainConfig, add_config_arguments, config_overrides, describe_variants,
                      variant_runs)
-from .model.framing import object_fill
+from .model.framing import training_framing
 from .training.dataset import TrainingViews
 from .training.objective import multiview_losses
 from .training.runs import load_checkpoint, make_model, make_optimizer, save_checkpoint
@@ -191,7 +191,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         runs.save_config(out, config)
-        runs.save_camera(out, ds.camera_setup, object_fill(data.images[..., 3].flatten(0, 1).cpu()))
+        runs.save_camera(out, ds.camera_setup, training_framing(data.images[..., 3].flatten(0, 1).cpu()))
         log.prepare()
     from tqdm import tqdm
 

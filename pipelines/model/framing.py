@@ -1,48 +1,72 @@
-"""How much of the frame the object fills, and an image re-framed the way the training views frame it.
+"""How the training views frame their object, and an image re-framed that way.
 
-The datasets' orbit cameras look at the object's centre from a fixed distance, so in every training view the
-object sits at the centre and its bounding box spans about the same share of the image side (the run's
-``object_fill``, stored in ``camera.json``). A photo frames its object as it likes: :func:`reframe` crops and
-pads it to a square around the object's box so that the box spans that share, centred.
+The datasets' orbit cameras look at the object's centre from a fixed distance and elevation, so in every training
+view the object is about as large and sits about at the same place (a little below the centre: the camera looks
+down on it). The model has no translation of its own and reads an object's size as its scale, so a photo that
+frames its object otherwise is read wrongly. A run stores how its training views frame their object in
+``camera.json``: ``object_size``, the median square root of the object's covered area over the image side (the
+measure of size that varies least with the view: 8 % over the glossy set's, against 18 % for the bounding box's
+longer side), and ``object_centre``, the median centroid of the covered pixels (row, column over the side).
+:func:`reframe` crops and pads an image to the square in which its object has that size and centroid.
 """
 from __future__ import annotations
 
 import torch
 
 COVERED = 0.5  # alpha above which a pixel is the object's
+# an image whose object is within these of the training views' is used as it is: re-framing it costs more (it
+# throws away the view's own size, which tells the car's) than it gains
+SIZE_TOLERANCE = 0.25  # relative, about three times the spread of the training views' sizes
+CENTRE_TOLERANCE = 0.08  # of the side, about three times the spread of their centroids
 
 
-def object_box(alpha: torch.Tensor) -> tuple[float, float, float, float] | None:
-    """(centre row, centre column, height, width) in pixels of the pixels of ``alpha`` (H, W) above COVERED;
-    None where there are none."""
-    rows = torch.nonzero((alpha > COVERED).any(1)).flatten()
-    cols = torch.nonzero((alpha > COVERED).any(0)).flatten()
-    if rows.numel() == 0:
+def object_extent(alpha: torch.Tensor) -> tuple[float, float, float] | None:
+    """(centroid row, centroid column, square root of the covered area), in pixels, of the pixels of ``alpha``
+    (H, W) above COVERED; None where there are none."""
+    covered = (alpha > COVERED).float()
+    area = float(covered.sum())
+    if area == 0:
         return None
-    top, bottom, left, right = float(rows[0]), float(rows[-1]) + 1, float(cols[0]), float(cols[-1]) + 1
-    return (top + bottom) / 2, (left + right) / 2, bottom - top, right - left
+    rows = torch.arange(alpha.shape[0], dtype=torch.float32) + 0.5
+    cols = torch.arange(alpha.shape[1], dtype=torch.float32) + 0.5
+    return float(covered.sum(1) @ rows) / area, float(covered.sum(0) @ cols) / area, area ** 0.5
 
 
-def object_fill(alpha: torch.Tensor) -> float:
-    """The median over views (N, H, W) of the object box's longer side over the image side."""
-    fills = [max(box[2], box[3]) / alpha.shape[-1] for box in map(object_box, alpha) if box is not None]
-    return float(torch.tensor(fills).quantile(0.5)) if fills else 0.0
+def training_framing(alpha: torch.Tensor) -> dict:
+    """``object_size`` and ``object_centre`` (see the module doc): medians over square views (N, S, S)."""
+    extents = torch.tensor([e for e in map(object_extent, alpha) if e is not None]) / alpha.shape[-1]
+    if not len(extents):
+        return {}
+    row, col, size = (round(float(v), 4) for v in extents.quantile(0.5, dim=0))
+    return {"object_size": size, "object_centre": [row, col]}
 
 
-def image_fill(alpha: torch.Tensor) -> float:
-    """The object box's longer side over the image's longer side (0 without an object)."""
-    box = object_box(alpha)
-    return max(box[2], box[3]) / max(alpha.shape) if box is not None else 0.0
+def image_framing(alpha: torch.Tensor) -> dict:
+    """The object's size and centroid in an image of any shape, over its longer side (as :func:`resize` pads it
+    to a square)."""
+    height, width = alpha.shape
+    side = max(height, width)
+    row, col, size = object_extent(alpha)
+    return {"object_size": size / side, "object_centre": [(row + (side - height) / 2) / side,
+                                                          (col + (side - width) / 2) / side]}
 
 
-def reframe(rgba: torch.Tensor, fill: float) -> torch.Tensor:
-    """(side, side, 4): a square window of ``rgba`` (H, W, 4) centred on the object's box, of a side that makes
-    the box's longer side ``fill`` of it; outside the image, transparent."""
-    cy, cx, height, width = object_box(rgba[..., 3])
-    side = max(round(max(height, width) / fill), 1)
-    top, left = round(cy - side / 2), round(cx - side / 2)
-    padded = torch.zeros(side, side, rgba.shape[-1], dtype=rgba.dtype)
+def frames_like(seen: dict, trained: dict) -> bool:
+    """Whether an image's object (:func:`image_framing`) is framed within the tolerances of the training views'."""
+    size_ratio = seen["object_size"] / trained["object_size"]
+    off = max(abs(a - b) for a, b in zip(seen["object_centre"], trained["object_centre"]))
+    return abs(size_ratio - 1) <= SIZE_TOLERANCE and off <= CENTRE_TOLERANCE
+
+
+def reframe(rgba: torch.Tensor, trained: dict) -> torch.Tensor:
+    """(side, side, 4): the square window of ``rgba`` (H, W, 4) in which its object has the training views' size
+    and centroid (``trained``: :func:`training_framing`); outside the image, transparent."""
+    row, col, size = object_extent(rgba[..., 3])
+    side = max(round(size / trained["object_size"]), 1)
+    top = round(row - trained["object_centre"][0] * side)
+    left = round(col - trained["object_centre"][1] * side)
+    window = torch.zeros(side, side, rgba.shape[-1], dtype=rgba.dtype)
     rows = slice(max(top, 0), min(top + side, rgba.shape[0]))
     cols = slice(max(left, 0), min(left + side, rgba.shape[1]))
-    padded[rows.start - top:rows.stop - top, cols.start - left:cols.stop - left] = rgba[rows, cols]
-    return padded
+    window[rows.start - top:rows.stop - top, cols.start - left:cols.stop - left] = rgba[rows, cols]
+    return window

@@ -110,29 +110,35 @@ def save_config(run: Path, config: TrainConfig) -> None:
         tmp.write_text(json.dumps(config.to_dict(), indent=2))
 
 
-def save_camera(run: Path, camera_setup, object_fill: float) -> None:
-    """The orbit camera of the training data (a datagen CameraSetup) and the share of the image side the object
-    spans in its views (``pipelines.model.framing``), for predict."""
+def save_camera(run: Path, camera_setup, framing: dict) -> None:
+    """The orbit camera of the training data (a datagen CameraSetup) and how its views frame their object
+    (:func:`pipelines.model.framing.training_framing`), for predict."""
     setup = dict(distance=camera_setup.distance, elevation_deg=camera_setup.elevation_deg,
-                 fov_deg=camera_setup.fov_deg, object_fill=round(object_fill, 4))
+                 fov_deg=camera_setup.fov_deg, **framing)
     with atomic_path(Path(run) / CAMERA) as tmp:
         tmp.write_text(json.dumps(setup, indent=2))
 
 
 def load_camera(run: Path) -> dict:
-    """The camera set-up of the data a run was trained on: distance, elevation_deg, fov_deg, and object_fill
-    where the run recorded it."""
+    """The camera set-up of the data a run was trained on: distance, elevation_deg, fov_deg, and where the run
+    recorded them, object_size and object_centre."""
     path = Path(run) / CAMERA
     if not path.is_file():
         raise DataError(f"{path} missing: the run predates saved camera set-ups; retrain it")
     setup = read_json(path, "camera set-up")
-    if not isinstance(setup, dict) or not all(isinstance(setup.get(k), (int, float)) and math.isfinite(setup[k])
-                                              for k in ("distance", "elevation_deg", "fov_deg")):
+    if not isinstance(setup, dict) or not all(_finite(setup.get(k)) for k in ("distance", "elevation_deg", "fov_deg")):
         raise DataError(f"{path}: expected finite numbers distance, elevation_deg and fov_deg; retrain the run")
-    fill = setup.get("object_fill")
-    if fill is not None and not (isinstance(fill, (int, float)) and 0 < fill <= 1):
-        raise DataError(f"{path}: object_fill {fill!r} is no share of the image side (0, 1]; retrain the run")
+    size, centre = setup.get("object_size"), setup.get("object_centre")
+    if (size, centre) != (None, None) and not (
+            _finite(size) and 0 < size <= 1 and isinstance(centre, list) and len(centre) == 2
+            and all(_finite(c) and 0 <= c <= 1 for c in centre)):
+        raise DataError(f"{path}: object_size {size!r} / object_centre {centre!r} are no share of the image side and "
+                        "point in it; retrain the run")
     return setup
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 # ----------------------------------------------------------------------------- checkpoints
