@@ -50,9 +50,8 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
     gt_meshes = [ds.mesh(obj) for obj in b["object"].tolist()]
     normals = renderer.render_normals(pred.meshes(), cams_on_device)
     gt_normals = [renderer.render_normals(gt.to(device), cams_on_device[[k]]) for k, gt in enumerate(gt_meshes)]
-    normal_deg, normal_within = metrics.normal_error_deg(
-        normals.rgb.cpu(), normals.alpha.cpu(), torch.cat([g.rgb for g in gt_normals]).cpu(),
-        torch.cat([g.alpha for g in gt_normals]).cpu())
+    gt_n, gt_alpha = (torch.cat([getattr(g, key) for g in gt_normals]).cpu() for key in ("rgb", "alpha"))
+    normal_deg, normal_within = metrics.normal_error_deg(normals.rgb.cpu(), normals.alpha.cpu(), gt_n, gt_alpha)
     pred, out_rgb, out_alpha = pred.to("cpu"), out.rgb.cpu(), out.alpha.cpu()  # the metrics, on the CPU
     light = pred.light(cams.world_to_camera)
     gt_mask, env = rgba[..., 3], b["envmap"]
@@ -67,6 +66,7 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
                 "iou": metrics.iou_loss(out_alpha, gt_mask),
                 **metrics.envmap_losses(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
+                "albedo_sky_blue": metrics.albedo_sky_blue(albedo, b["albedo"][:, 0], gt_n, gt_alpha),
                 "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
     gt_light = EnvMap(env)
     probes = metrics.ProbeScene(cams.world_to_camera)
@@ -122,7 +122,7 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
     # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
     # flipped predictions of 180 degrees should not hide that most are right)
     result = {k: float(metrics.median(v) if k.startswith(("direction_deg", "normal_deg")) else
-                       v.nanmean() if k.startswith("normal") else v.mean()) for k, v in per_view.items()}
+                       v.nanmean() if k.startswith(("normal", "albedo_sky")) else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure
         v = per_view[k]

@@ -77,9 +77,13 @@ def set_learning_rate(opt: torch.optim.Optimizer, config: TrainConfig, iteration
 
 # ----------------------------------------------------------------------------- run
 
-def _setup_distributed():
+def _setup_distributed(device: str):
+    """(rank, world size) of a torchrun launch, (0, 1) otherwise. On CUDA each rank trains on its own GPU (torchrun's
+    LOCAL_RANK) and the gradients are reduced over NCCL; on the CPU over gloo."""
     if "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) > 1:
-        dist.init_process_group("gloo")  # the model and its batches live on the CPU (NCCL takes CUDA tensors only)
+        if device == "cuda":
+            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))  # "cuda" is this rank's GPU from here on
+        dist.init_process_group("nccl" if device == "cuda" else "gloo")
         return dist.get_rank(), dist.get_world_size()
     return 0, 1
 
@@ -155,11 +159,9 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     """Train (or with ``resume`` continue) the run ``config.out``; ``dataset``: its training split, if open;
     ``threads``: torch's threads in this process (0: torch's default, one per core)."""
     config.validate()
-    rank, world = _setup_distributed()
-    if config.device == "cuda" and world > 1:
-        raise ValueError("--device cuda trains in one process; data-parallel runs (torchrun) are CPU-only so far")
     if config.device == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
+    rank, world = _setup_distributed(config.device)
     if threads:
         torch.set_num_threads(threads)
     if rank == 0 and config.device == "cpu":
@@ -181,7 +183,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)
     opt = make_optimizer(model, config)
     start = restore(ckpt, model, opt) if ckpt.exists() else 0
-    ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    on_gpu = [torch.cuda.current_device()] if config.device == "cuda" else None
+    ddp = torch.nn.parallel.DistributedDataParallel(model, device_ids=on_gpu) if world > 1 else model
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
     if start >= config.iterations:  # before anything is written: a finished run's folder stays as it is
         if rank == 0:

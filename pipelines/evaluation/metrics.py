@@ -336,6 +336,21 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
                         for e, t, b, s in zip(angle, turn, both, at_sun)])
 
 
+UP_FACING_COS = 0.5  # a surface faces up (mirrors the sky) where its normal is within 60 degrees of up
+
+
+def albedo_sky_blue(albedo: torch.Tensor, gt_albedo: torch.Tensor, gt_normals: torch.Tensor,
+                    gt_alpha: torch.Tensor) -> torch.Tensor:
+    """(B,) how much bluer the predicted albedo is than the GT's where the GT surface faces up (and mirrors the sky):
+    the mean over those pixels of the blue chromaticity b / (r + g + b), predicted minus GT. Albedos (B, H, W, 3)
+    rendered in the input view, GT world normals (B, H, W, 3) and coverage (B, H, W); NaN where no pixel faces up.
+    0 where the albedo holds no sky; a hood that keeps the sky's reflection in its albedo scores above 0."""
+    up = (gt_normals[..., 2] > UP_FACING_COS) & (gt_alpha > 0.5)
+    blue = lambda a: a[..., 2] / a.sum(-1).clamp_min(1e-4)  # noqa: E731
+    excess = (blue(albedo) - blue(gt_albedo)) * up
+    return excess.sum((1, 2)) / up.sum((1, 2)).clamp_min(1) + torch.where(up.any(2).any(1), 0.0, float("nan"))
+
+
 def median(values: torch.Tensor) -> torch.Tensor:
     """The median of ``values``, NaN ignored: the mean of the two middle values of an even count (torch's
     ``median`` / ``nanmedian`` return the lower one, which the intervals' ``np.median`` does not); NaN if none."""

@@ -41,7 +41,8 @@ MODEL_VERSION = 9  # bump when parameters or their meaning change (training.earl
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 
 # the allowed values of the model's string options
-CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free"), "light_head": ("global", "probe"),
+CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
+           "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
 
 
@@ -58,7 +59,9 @@ class ModelConfig:
     texture_height: int = 32
     texture_width: int = 64
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
-    light_colour: str = "white"  # white: white-balanced light | free: any colour
+    # white: white-balanced light | free: any colour | sky-ground: white-balanced, the probe head's sky tinted by a
+    # colour above the horizon and one below (ProbeLightHead.hemisphere_colour)
+    light_colour: str = "white"
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.model.light_probe), in the probe frame
     light_head: str = "global"
@@ -87,6 +90,8 @@ class ModelConfig:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
         if self.light_head == "probe" and self.shading == "sh":
             raise ValueError("the probe light head predicts SG lobes or env maps, not SH")
+        if self.light_colour == "sky-ground" and self.light_head != "probe":
+            raise ValueError("light_colour 'sky-ground' tints the probe head's sky; use it with light_head 'probe'")
         if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
                              "light_head 'probe'")
@@ -175,7 +180,8 @@ class Encoder(nn.Module):
                 self.pixel_normals = PixelNormalNet()
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
-            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE)
+            self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
+                                             sky_ground=c.light_colour == "sky-ground")
         else:
             light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
             self.light_head = nn.Linear(512, light_out)
@@ -314,7 +320,7 @@ class Encoder(nn.Module):
             light = self._probe_light(images, verts.detach(), cameras, f, metallic, pixel_normals)
         else:
             light = self._light_from_code(f)
-        if c.light_colour == "white":
+        if c.light_colour != "free":
             light = white_balance(light, kind)
         return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing, pixel_normals)
 

@@ -44,6 +44,8 @@ HORIZON_SOFTNESS = 0.05
 # MC's probe sun: its light's grid is this many times finer than the probe grid (64 x 128, 2.8 degree cells), so that
 # a sun trained as a sharp SG lobe is not spread over 11 degree cells
 SUN_GRID_SCALE = 4
+# variant sky-ground: the horizon's softness (in sin elevation) between the sky's colour and the ground's
+SKY_GROUND_SOFTNESS = 0.1
 
 
 def camera_to_probe(device=None, dtype=torch.float32) -> torch.Tensor:
@@ -200,7 +202,7 @@ class ProbeLightHead(nn.Module):
     """
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
-                 max_log_radiance: float, code: int = 512, channels: int = 32):
+                 max_log_radiance: float, code: int = 512, channels: int = 32, sky_ground: bool = False):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -232,6 +234,12 @@ class ProbeLightHead(nn.Module):
         nn.init.zeros_(self.sun.weight)
         with torch.no_grad():
             self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
+        self.sky_ground = None
+        if sky_ground:  # its own draws (zeroed anyway): every other weight starts as the default's
+            with torch.random.fork_rng(devices=[]):
+                self.sky_ground = nn.Linear(code, 6)  # log colour of the sky and of the ground, beside the cue's
+            nn.init.zeros_(self.sky_ground.weight)
+            nn.init.zeros_(self.sky_ground.bias)
 
     def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
@@ -245,12 +253,35 @@ class ProbeLightHead(nn.Module):
         h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)
         return h, self._conv(self.out, h)
 
-    def sky(self, grid: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
+    def sky(self, grid: torch.Tensor, residual: torch.Tensor, code: torch.Tensor,
+            probe_to_world: torch.Tensor) -> torch.Tensor:
         """(B, K-1, 3) the sky lobes' amplitudes: the mirror cue's luminance (on glossy paint the cue's colour is
-        mostly the paint's), refined by the residual, sampled at the fixed axes."""
+        mostly the paint's), refined by the residual (and with ``sky_ground``, tinted by the sky's and the ground's
+        colours), sampled at the fixed axes."""
         cue = grid[:, :3].mean(1, keepdim=True)
         log_map = torch.log(cue + LOG_EPS) + residual[:, :3] + self.log_gain
+        if self.sky_ground is not None:
+            log_map = log_map + self.hemisphere_colour(grid, code, probe_to_world)
         return torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))
+
+    def hemisphere_colour(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) log colour (mean 0 over RGB) of the sky above the world's horizon and of the ground below it.
+        Read off the mirror cue: the ratio of its colour above to its colour below, which the paint's colour, common
+        to both, divides out (half of it to each side), shifted by what the global code adds."""
+        up = probe_to_world[:, 2]  # the world's up in the probe frame (B, 3)
+        above = torch.sigmoid(torch.einsum("bc,chw->bhw", up, self.cell_dirs[0]) / SKY_GROUND_SOFTNESS).unsqueeze(1)
+        seen = grid[:, 3:4]
+
+        def log_chroma(weight: torch.Tensor) -> torch.Tensor:  # (B, 3) the cue's mean colour under weight, as log chroma
+            mean = (grid[:, :3] * seen * weight).sum((2, 3)) / (seen * weight).sum((2, 3)).clamp_min(1e-6)
+            log = torch.log(mean + LOG_EPS)
+            return log - log.mean(-1, keepdim=True)
+
+        half = 0.5 * (log_chroma(above) - log_chroma(1 - above))
+        shift = self.sky_ground(code).view(-1, 2, 3)
+        shift = shift - shift.mean(-1, keepdim=True)
+        sky, ground = (half + shift[:, 0]), (-half + shift[:, 1])
+        return above * sky[..., None, None] + (1 - above) * ground[..., None, None]
 
     def place_sun(self, sun_grid: torch.Tensor, residual: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
             probe_to_world: torch.Tensor, metal: torch.Tensor, sky: torch.Tensor) -> tuple:
@@ -279,7 +310,7 @@ class ProbeLightHead(nn.Module):
         pixels', :func:`facing_mirror_cue`; default: ``grid``'s own)."""
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         h, residual = self.features(grid, code)
-        sky = self.sky(grid, residual)
+        sky = self.sky(grid, residual, code, probe_to_world)
         sun = self.place_sun(sun_grid, residual, h, code, probe_to_world, metal, sky.mean(1))
         return self.env_light(sky, *sun) if self.kind == "env" else self.sg_light(sky, *sun, sun_grid, metal)
 

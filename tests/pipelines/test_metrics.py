@@ -238,3 +238,17 @@ def test_the_median_of_an_even_count_is_the_mean_of_the_middle_two_and_nan_is_ig
     assert float(median(torch.tensor([3.0, 1.0, 2.0]))) == 2.0 and median(torch.tensor([])).isnan()
     summary = direction_summary(np.array([34.51, 71.54]), np.array([0, 1]))
     assert summary["median_ci"][0] <= float(median(errors)) <= summary["median_ci"][1]
+
+
+def test_the_albedo_s_sky_blue_is_read_where_the_surface_faces_up_only():
+    from pipelines.evaluation.metrics import albedo_sky_blue
+
+    gt = torch.full((1, 2, 2, 3), 0.5)  # a grey albedo
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).view(1, 2, 2, 3)
+    alpha = torch.ones(1, 2, 2)
+    pred = gt.clone()
+    pred[0, 0, 0] = torch.tensor([0.2, 0.3, 0.5])  # the sky's blue kept on one up-facing pixel
+    pred[0, 1] = torch.tensor([0.1, 0.1, 0.8])  # bluer still, but on the side and the bottom: not the sky's
+    assert float(albedo_sky_blue(pred, gt, normals, alpha)[0]) == pytest.approx((0.5 - 1 / 3) / 2)
+    assert float(albedo_sky_blue(gt, gt, normals, alpha)[0]) == pytest.approx(0.0)
+    assert albedo_sky_blue(gt, gt, -normals.abs(), alpha)[0].isnan()  # nothing faces up
