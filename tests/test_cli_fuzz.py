@@ -61,7 +61,10 @@ CLIS = [
     Cli("python -m pipelines.train", "pipelines.train:main",
         ["--dataset", "{data}", "--out", "{out}", "--no-progress"], ("pipelines.train:train",),
         fakes=("pipelines.train:open_train_split",), paths=dict(dataset="dir-in", out="dir-out", config="file-in"),
-        strings=("variant", "variant_runs")),
+        strings=("variant", "variant_runs"), zero_ok=("threads",)),
+    Cli("python -m pipelines.export_model", "pipelines.export_model:main", ["--run", "{run}", "--out", "{out}"],
+        ("pipelines.export_model:export",), paths=dict(run="dir-in", out="dir-out"),
+        free=("retrain", "commit")),  # text for the model card
     Cli("python -m pipelines.evaluate", "pipelines.evaluate:main", ["--runs", "{run}", "--out", "{out}"],
         ("pipelines.evaluate:evaluate_and_write",), paths=dict(runs="dir-in", out="dir-out", dataset="dir-in"),
         zero_ok=("refine_steps",)),
