@@ -5,8 +5,9 @@ The light beyond the sun, measured. On the test views whose GT map has a sky bri
 the sun and its glow (diagnose_light's): how much brighter the sky is than the ground (the ratio of their mean
 luminances) and how much bluer (the difference of their blue chromaticities, b / (r + g + b)), medians over the
 views, and the share of views where the predicted sky is as much brighter and bluer as makes a sky
-(``metrics.has_sky``: at least 1.25 times as bright, 0.01 bluer), as every selected GT map is. A constant map has
-neither (ratio 1, difference 0): its row is the reference.
+(``metrics.has_sky``: at least 1.25 times as bright, 0.01 bluer), as every selected GT map is, and the share where it
+is as much brighter and at least half as much bluer as its GT's sky is than its ground (the light's target). A
+constant map has neither (ratio 1, difference 0): its row is the reference.
 """
 from __future__ import annotations
 
@@ -50,7 +51,8 @@ def diagnose(run: Path, stride: int = 3) -> dict:
             "bluer": float(metrics.median(pred[:, 1])), "bluer_gt": float(metrics.median(gt[:, 1])),
             "brighter_share": float((pred[:, 0] >= metrics.SKY_BRIGHTER).float().mean()),
             "bluer_share": float((pred[:, 1] >= metrics.SKY_BLUER).float().mean()),
-            "sky_share": float(metrics.has_sky(pred[:, 0], pred[:, 1]).float().mean())}
+            "sky_share": float(metrics.has_sky(pred[:, 0], pred[:, 1]).float().mean()),
+            "like_gt_share": float(((pred[:, 0] >= metrics.SKY_BRIGHTER) & (pred[:, 1] >= 0.5 * gt[:, 1])).float().mean())}
 
 
 HEADER = ["run", "test views with a sky", "sky / ground luminance, median (GT)", "sky − ground blue, median (GT)",
@@ -59,7 +61,8 @@ HEADER = ["run", "test views with a sky", "sky / ground luminance, median (GT)",
 
 def row(name: str, r: dict) -> list[str]:
     return [name, str(r["views"]), f"{r['ratio']:.2f} ({r['ratio_gt']:.2f})", f"{r['bluer']:+.3f} ({r['bluer_gt']:+.3f})",
-            f"{100 * r['brighter_share']:.0f} %", f"{100 * r['bluer_share']:.0f} %", f"{100 * r['sky_share']:.0f} %"]
+            f"{100 * r['brighter_share']:.0f} %", f"{100 * r['bluer_share']:.0f} %", f"{100 * r['sky_share']:.0f} %",
+            f"{100 * r['like_gt_share']:.0f} %"]
 
 
 def main(argv=None) -> int:
@@ -73,7 +76,8 @@ def main(argv=None) -> int:
     except DataError as e:
         ap.error(str(e))
     first = results[0][1]
-    constant = {**first, "ratio": 1.0, "bluer": 0.0, "brighter_share": 0.0, "bluer_share": 0.0, "sky_share": 0.0}
+    constant = {**first, "ratio": 1.0, "bluer": 0.0, "brighter_share": 0.0, "bluer_share": 0.0, "sky_share": 0.0,
+                "like_gt_share": 0.0}
     print(markdown_table(HEADER, [row(name, r) for name, r in results] +
                          [row(f"a constant map (the reference; GT of {results[0][0]})", constant)]))
     return 0

@@ -24,7 +24,7 @@ from dibrpp.io import DataError, atomic_path
 
 from .evaluation.summary import CONSTANT_REFERENCES
 from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run
-from .training.runs import CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_run, read_checkpoint, read_json
+from .training.runs import CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_run, read_checkpoint, read_json, run_folder
 
 REPO = Path(__file__).resolve().parents[1]
 CARD, METRICS = "MODEL_CARD.md", "metrics.json"
@@ -124,6 +124,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         check_output_folder("--out", args.out)
+        run_folder(args.run)  # a missing or broken run: said before anything is written
         out = export(args.run, args.out, args.retrain or f"python -m pipelines.train --out {args.run}", args.commit)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -239,6 +239,9 @@ def test_grad_seed_needs_replay():
         MCShader(spp=4, grad_seed=1, replay=False)
 
 
+# a cold torch.compile of MC's path: ~140 s alone on 2 cores, several times that beside another job
+@pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_compiled_mc_render_matches_eager_values_and_gradients():
     """Renderer(compile=True): the G-buffer and the MC samples through torch.compile, same numbers."""
     from dibrpp import renderer, shading

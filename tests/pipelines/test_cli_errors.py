@@ -93,15 +93,19 @@ def test_train_iterations_below_one_leaves_no_run_folder(tiny_glossy, tmp_path, 
     assert not (tmp_path / "r").exists()
 
 
+def resume_args(run, *extra) -> list[str]:
+    return ["--out", str(run), "--resume", "--no-progress", *extra]
+
+
 def test_train_resume_on_a_truncated_checkpoint(tiny_glossy, run_copy, capsys):
     truncate(run_copy / "checkpoint.pt")
-    code = train.main(smoke_args(tiny_glossy, run_copy, "--resume") + ["--iterations", "4"])
+    code = train.main(resume_args(run_copy, "--iterations", "4"))
     assert_one_error(code, capsys.readouterr().err, "checkpoint.pt", "truncated")
 
 
 def test_train_resume_with_another_seed_is_refused_naming_it(tiny_glossy, run_copy, capsys):
     before = (run_copy / "checkpoint.pt").read_bytes()
-    code = train.main(smoke_args(tiny_glossy, run_copy, "--resume", "--seed", "5"))
+    code = train.main(resume_args(run_copy, "--seed", "5"))
     assert_one_error(code, capsys.readouterr().err, "seed")
     assert (run_copy / "checkpoint.pt").read_bytes() == before  # nothing lost
 

@@ -262,7 +262,8 @@ def test_the_table_by_elevation_bands_each_view_by_how_high_its_light_stands():
     lifts = {"run": torch.tensor([-1.0, -2.0, 3.0, -10.0, 0.0])}  # the consensus rows have no per-view lift
     header, rows = by_elevation(errors, lifts, torch.tensor([10.0, 25.0, 40.0, 60.0, 15.0]))
     assert len(header) == 1 + len(ELEVATION_BANDS) and header[1] == "light 0–20° high, 2 views"
-    assert rows[0] == ["run", "5.0° (100 %, -1.0°)", "30.0° (0 %, -2.0°)", "20.0° (100 %, +3.0°)", "50.0° (0 %, -10.0°)"]
-    assert rows[1] == ["consensus", "1.0° (100 %)", "2.0° (100 %)", "3.0° (100 %)", "4.0° (100 %)"]
+    # medians of an even count are the mean of the middle two: (10 + 5) / 2, (-1 + 0) / 2, (1 + 5) / 2
+    assert rows[0] == ["run", "7.5° (100 %, -0.5°)", "30.0° (0 %, -2.0°)", "20.0° (100 %, +3.0°)", "50.0° (0 %, -10.0°)"]
+    assert rows[1] == ["consensus", "3.0° (100 %)", "2.0° (100 %)", "3.0° (100 %)", "4.0° (100 %)"]
     header, rows = by_elevation(errors, lifts, torch.tensor([10.0, 12.0, 14.0, 16.0, 18.0]))  # every light low
     assert header[2] == "light 20–35° high, 0 views" and rows[0][2:] == ["", "", ""]

@@ -18,7 +18,7 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     runs = tmp_path / "runs"
     assert train.main(["--preset", "smoke", "--dataset", str(tiny_glossy),
                        "--shading", "sh", "--iterations", "2", "--out", str(runs / "glossy" / "sh-seed0"),
-                       "--no-progress"]) == 0
+                       "--no-progress", "--no-compile"]) == 0  # evaluated eagerly too: three evaluations, no compile
     out = tmp_path / "eval"
     capsys.readouterr()
     assert evaluate.main(["--runs", str(runs), "--out", str(out)]) == 0

@@ -36,7 +36,9 @@ def config(data, out, **kw):
 
 @pytest.mark.parametrize("shading", ["mc", "sg", "sh", "sh-sg"])
 def test_every_shading_method_trains_and_the_loss_goes_down(tiny_glossy, tmp_path, shading):
-    cfg = config(tiny_glossy, tmp_path / shading, shading=shading, iterations=30, lobes=8, batch_objects=4, lr=2e-3)
+    # eager: what is tested is the training, not torch.compile (a cold compile of MC's path takes minutes)
+    cfg = config(tiny_glossy, tmp_path / shading, shading=shading, iterations=30, lobes=8, batch_objects=4, lr=2e-3,
+                 compile=False)
     train(cfg, progress=False)
     rows = [line.split(",") for line in (tmp_path / shading / "log.csv").read_text().splitlines()[1:]]
     first = sum(float(r[1]) for r in rows[:5]) / 5
@@ -461,7 +463,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
     from pipelines.model.model_input import encoder_input
     from pipelines.training.runs import load_run
     out = tmp_path / "mc-sun"
-    train(config(tiny_glossy, out, shading="mc", iterations=2), progress=False)
+    train(config(tiny_glossy, out, shading="mc", iterations=2, compile=False), progress=False)  # eager: see above
     run = load_run(out)
     assert run.model.config.light_head == "probe" and run.config.label() == ""
     assert hasattr(run.model.light_head, "axes") and hasattr(run.model.light_head, "sun")
@@ -472,7 +474,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
         pred = run.model(encoder_input(flat), cams)
     assert pred.light_params["image"].shape[1:] == (64, 128, 3) and torch.isfinite(pred.light_params["image"]).all()
     assert pred.light_params["sun_log_p"].exp().sum(-1).allclose(torch.ones(len(flat)))
-    train(config(tiny_glossy, out, shading="mc", iterations=4), resume=True, progress=False)
+    train(config(tiny_glossy, out, shading="mc", iterations=4, compile=False), resume=True, progress=False)
 
 
 def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
