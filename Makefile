@@ -24,8 +24,8 @@ TRAIN_ARGS ?=
 .PHONY: models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
-	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~7.5 h)"
-	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~25 min)"
+	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; 7.5-9 h)"
+	@echo "make first-look       the glossy set, SG, seed 0, evaluated (18-30 min)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"

@@ -59,8 +59,8 @@ class ModelConfig:
     texture_height: int = 32
     texture_width: int = 64
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
-    # white: white-balanced light | free: any colour | sky-ground: white-balanced, the probe head's sky tinted by a
-    # colour above the horizon and one below (ProbeLightHead.hemisphere_colour)
+    # white: white-balanced light | free: any colour | sky-ground: white-balanced, and the probe head's sky tinted by
+    # a colour above the horizon and one below (ProbeLightHead.hemisphere_colour; as white with the global head)
     light_colour: str = "white"
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.model.light_probe), in the probe frame
@@ -90,8 +90,6 @@ class ModelConfig:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
         if self.light_head == "probe" and self.shading == "sh":
             raise ValueError("the probe light head predicts SG lobes or env maps, not SH")
-        if self.light_colour == "sky-ground" and self.light_head != "probe":
-            raise ValueError("light_colour 'sky-ground' tints the probe head's sky; use it with light_head 'probe'")
         if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
                              "light_head 'probe'")

@@ -66,8 +66,9 @@ class TrainConfig:
     predict_metallic: bool | None = _opt(None, "predict the metallic parameter (unset: where the dataset has metals)")
     texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
                         ("projected", "global"))
-    light_colour: str = _opt("white", "white-balanced light, or light of any colour, or white-balanced with a sky colour "
-                             "and a ground colour (sky-ground, the probe head's)", ("white", "free", "sky-ground"))
+    light_colour: str = _opt("sky-ground", "white-balanced light whose sky (the probe head's) is tinted by a colour above "
+                             "the horizon and one below, white-balanced light alone, or light of any colour",
+                             ("sky-ground", "white", "free"))
     light_head: str = _opt("probe", "light read from the input through the predicted geometry (probe: the object as a "
                            "light probe) or regressed from the global code (global, the paper's); SH light is always "
                            "regressed", ("probe", "global"))
@@ -119,9 +120,6 @@ class TrainConfig:
         if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")
-        if self.light_colour == "sky-ground" and not self.has_probe_head():
-            raise ConfigError("light_colour 'sky-ground' tints the probe head's sky; use it with the probe light head "
-                              "(--light-head probe) and --shading sg, sh-sg or mc")
         if self.probe_normals == "pixels" and not self.has_probe_head():
             raise ConfigError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with the probe "
                               "light head (--light-head probe) and --shading sg, sh-sg or mc")

@@ -72,6 +72,8 @@ SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"
 LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}}
 # settings of how a run ran, not of what it trains, that left the config for a flag of train: dropped, any value
 RUN_SETTINGS_LEFT = ("threads",)
+# variants that became the default: their runs are the default model (their fields are the default's values now)
+BECAME_DEFAULT = ("sky-ground",)
 
 
 def _drop_retired(values: dict, retired: dict, commit: str = LAST_COMMIT) -> None:
@@ -89,6 +91,8 @@ def without_options_left_later(saved: dict) -> dict:
         _drop_retired(values, retired, commit)
     for name in RUN_SETTINGS_LEFT:
         values.pop(name, None)
+    if values.get("variant") in BECAME_DEFAULT:
+        values["variant"] = ""
     return values
 
 

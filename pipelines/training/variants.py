@@ -41,10 +41,6 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third",
                            {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    # candidates for the default
-    "sky-ground": Variant("the probe head's sky tinted by a colour above the world's horizon and one below, read off the "
-                          "mirror cue's colour above against below (the paint divides out) and the global code",
-                          {"light_colour": "sky-ground"}, runs=(("glossy", 0), ("metallic", 0))),
     # the variant whose numbers the README cites
     "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "
