@@ -529,7 +529,8 @@ HOUSE_REFERENCE = Path(__file__).parent / "data" / "default_models_before_the_ho
 @pytest.mark.parametrize("shading", ["sg", "mc", "sh", "sh-sg"])
 def test_the_default_models_train_as_they_did_before_the_retired_experiments_left(tiny_glossy, tmp_path, shading):
     """Removing the losing experiments' branches left the default path as it was: each default model trained for 6
-    iterations at one thread has the architecture, the loss curve and the weight norms it had before.
+    iterations at one thread has the architecture, the loss curve and the weight norms it had before (recorded
+    again only where the default itself changed, as when its light got a sky and a ground: experiments, entry 43).
 
     Compared only in quantities that another CPU's rounding cannot move past the tolerance: ATen's three kernel sets
     (ATEN_CPU_CAPABILITY=default, avx2, avx512, each with its own inductor cache) moved the losses by at most 1.5e-4
