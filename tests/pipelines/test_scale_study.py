@@ -115,3 +115,22 @@ def test_a_run_that_is_not_what_its_point_says_is_neither_tabled_nor_resumed(tmp
     assert "not this point" in [line for line in capsys.readouterr().out.splitlines() if line.startswith("base ")][0]
     assert scale_study.main(["run", *_where(tmp_path), "--points", "base"]) == 2
     assert "iterations 4, not 1500" in _one_error_line(capsys)
+
+
+def test_a_broken_summary_is_tabled_without_a_time_and_a_broken_run_stops_the_report_before_any_figure(
+        tmp_path, monkeypatch, capsys):
+    run = tmp_path / "runs-scale" / "its750"
+    run.mkdir(parents=True)
+    (run / "summary.json").write_text("{garbage")
+    assert scale_study.train_minutes(run) is None and "summary.json: no training time" in capsys.readouterr().err
+    (run / "summary.json").write_text('{"iterations": 750}')
+    assert scale_study.train_minutes(run) is None and "no training time" in capsys.readouterr().err
+    (run / "config.json").write_text("{}")
+    (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 truncated")
+    rows = [{"point": name, "value": v, "run": run, "test": {}, "train": None, "minutes": None}
+            for name, v in (("its750", 750), ("base", 1500))]
+    monkeypatch.setattr(scale_study, "axis_rows", lambda axis, folders: rows if axis == "iterations" else [])
+    monkeypatch.setattr(scale_study, "table", lambda axis, rows: "")
+    assert scale_study.main(["report", *_where(tmp_path)]) == 2
+    assert "checkpoint.pt" in _one_error_line(capsys)
+    assert not list((tmp_path / "out").rglob("*.png")) and not list((tmp_path / "out").rglob("scale.md"))
