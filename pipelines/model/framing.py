@@ -42,8 +42,8 @@ def training_framing(alpha: torch.Tensor) -> dict:
 
 
 def image_framing(alpha: torch.Tensor) -> dict:
-    """The object's size and centroid in an image of any shape, over its longer side (as :func:`resize` pads it
-    to a square)."""
+    """The object's size and centroid in an image of any shape, over its longer side (``predict`` pads an image to
+    a square around its centre)."""
     height, width = alpha.shape
     side = max(height, width)
     row, col, size = object_extent(alpha)
