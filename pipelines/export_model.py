@@ -24,7 +24,8 @@ from dibrpp.io import DataError, atomic_path
 
 from .evaluation.summary import CONSTANT_REFERENCES
 from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run
-from .training.runs import CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_run, read_checkpoint, read_json, run_folder
+from .training.runs import (CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_camera, load_run, read_checkpoint, read_json,
+                            run_folder)
 
 REPO = Path(__file__).resolve().parents[1]
 CARD, METRICS = "MODEL_CARD.md", "metrics.json"
@@ -107,8 +108,8 @@ def export(run: Path, out: Path, retrain: str, commit: str | None = None) -> Pat
     with atomic_path(out / METRICS) as tmp:
         tmp.write_text(json.dumps(metrics, indent=1))
     summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}
-    camera = {**read_json(run / CAMERA, "camera set-up"), "image_size": loaded.model.config.image_size}
-    card = model_card(out.name, read_json(run / CONFIG, "config"), camera, metrics, loaded.iteration,
+    camera = {**load_camera(run), "image_size": loaded.model.config.image_size}
+    card = model_card(out.name, loaded.config.to_dict(), camera, metrics, loaded.iteration,
                       summary.get("seconds"), commit or git_commit(), retrain)
     with atomic_path(out / CARD) as tmp:
         tmp.write_text(card)

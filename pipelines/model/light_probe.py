@@ -44,7 +44,7 @@ HORIZON_SOFTNESS = 0.05
 # MC's probe sun: its light's grid is this many times finer than the probe grid (64 x 128, 2.8 degree cells), so that
 # a sun trained as a sharp SG lobe is not spread over 11 degree cells
 SUN_GRID_SCALE = 4
-# variant sky-ground: the horizon's softness (in sin elevation) between the sky's colour and the ground's
+# light_colour sky-ground: the horizon's softness (in sin elevation) between the sky's colour and the ground's
 SKY_GROUND_SOFTNESS = 0.1
 
 
@@ -235,7 +235,7 @@ class ProbeLightHead(nn.Module):
         with torch.no_grad():
             self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
         self.sky_ground = None
-        if sky_ground:  # its own draws (zeroed anyway): every other weight starts as the default's
+        if sky_ground:  # its own draws (zeroed anyway): every other weight starts as white light alone's
             with torch.random.fork_rng(devices=[]):
                 self.sky_ground = nn.Linear(code, 6)  # log colour of the sky and of the ground, beside the cue's
             nn.init.zeros_(self.sky_ground.weight)
