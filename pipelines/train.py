@@ -179,8 +179,6 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     data = TrainingViews(ds, check_trainable_size(ds), envmaps=config.supervision in ("light-map", "light-probe", "sun"),
                          normals=config.reads_gt_normals(), device=config.device, max_objects=config.train_objects)
     model = make_model(config, data.resolution).to(config.device)
-    if config.light_colour == "sky-prior":  # a resumed run's checkpoint overwrites it
-        model.light_head.start_sky_and_ground(data.sky_and_ground_colours(ds, data.envmap_of_sample.tolist()).to(config.device))
     if config.probe_normals == "pixels":  # fitted once, before the model trains, held, read in evaluation
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)
     opt = make_optimizer(model, config)

@@ -283,11 +283,6 @@ class ProbeLightHead(nn.Module):
         sky, ground = (half + shift[:, 0]), (-half + shift[:, 1])
         return above * sky[..., None, None] + (1 - above) * ground[..., None, None]
 
-    @torch.no_grad()
-    def start_sky_and_ground(self, colours: torch.Tensor) -> None:
-        """Start the sky's and the ground's colours (beside the cue's) at ``colours`` (2, 3): log, mean 0 over RGB."""
-        self.sky_ground.bias.copy_(colours.flatten())
-
     def place_sun(self, sun_grid: torch.Tensor, residual: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
             probe_to_world: torch.Tensor, metal: torch.Tensor, sky: torch.Tensor) -> tuple:
         """The sun: its axis (B, 3), its distribution over cells as log-probabilities (B, H*W), its sharpness (B, 1)

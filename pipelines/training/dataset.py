@@ -11,8 +11,6 @@ from datagen.reader import MultiViewDataset
 from dibrpp import Cameras, Renderer
 from dibrpp.io import DataError
 
-from ..evaluation.metrics import sky_and_ground
-
 
 class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
@@ -54,14 +52,6 @@ class TrainingViews:
             self.normals = self.normals.to(device)
         if self.envmaps is not None:
             self.envmaps = {env: m.to(device) for env, m in self.envmaps.items()}
-
-    @staticmethod
-    def sky_and_ground_colours(ds: MultiViewDataset, envs) -> torch.Tensor:
-        """(2, 3) the mean log colour (mean 0 over RGB) of the sky and of the ground of the env maps ``envs`` (without
-        each map's sun: metrics.sky_and_ground): what skies and grounds look like in the maps a run trains on."""
-        sky, ground = sky_and_ground(torch.stack([ds.envmap(e) for e in sorted(set(envs))]))
-        log = torch.stack([sky, ground], 1).clamp_min(1e-6).log()
-        return (log - log.mean(-1, keepdim=True)).mean(0)
 
     def _gt_normals(self, ds: MultiViewDataset) -> torch.Tensor:
         """(samples, views, S, S, 4) the GT mesh's world-frame normals and coverage in every view."""

@@ -230,8 +230,7 @@ def make_model(config: TrainConfig, image_size: int) -> Encoder:
     """The encoder a run trains on images of ``image_size`` (the dataset's)."""
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=image_size,
                                predict_metallic=bool(config.predict_metallic), texture=config.texture,
-                               light_colour="sky-ground" if config.light_colour == "sky-prior" else config.light_colour,
-                               light_head=config.model_light_head(),
+                               light_colour=config.light_colour, light_head=config.model_light_head(),
                                input_range=config.input_range, probe_normals=config.probe_normals,
                                global_grid=config.global_grid))
 
