@@ -24,8 +24,8 @@ TRAIN_ARGS ?=
 .PHONY: models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
-	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; 7.5-9 h)"
-	@echo "make first-look       the glossy set, SG, seed 0, evaluated (18-30 min)"
+	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
+	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~35 min on 2 cores)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
@@ -42,9 +42,9 @@ help:
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
-	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~35 min)"
+	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~1.2 h)"
 	@echo "make study-scale      the default SG model along resolution, length and data: runs in runs-scale/, curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; all of them ~15 h on 2 cores)"
-	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1 h)"
+	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1.3 h)"
 
 setup: system-libs $(VENV)/.installed
 
@@ -199,7 +199,7 @@ study-maps: $(VENV)/.installed
 # The input's resolution: the metallic set and 157 other metallic cars under skies (the larger sunny set of
 # docs/experiments.md entries 24-34) rendered at 32 x 32 as well as 64 x 64, SG trained at 32 x 32, and each
 # resolution's run evaluated and diagnosed on its own sunny set (results/eval-res64, results/eval-res32).
-# Resumable at every step; run `make train-metallic` first for the 64 x 64 run. ~1 h on 2 cores.
+# Resumable at every step; run `make train-metallic` first for the 64 x 64 run. ~1.3 h on 2 cores.
 SUNNY_LARGE := --dataset metallic --outdoor-share 1 --num-objects 120 --num-envmaps 120 --seed 2
 study-resolution: $(VENV)/.installed
 	@test -f $(RUNS)/metallic/sg-seed0/checkpoint.pt || \
@@ -221,9 +221,9 @@ study-resolution: $(VENV)/.installed
 # test and train splits, then the curves and light rows (results/scale/). Resumable at every step.
 SCALE_POINTS ?=
 study-scale: $(VENV)/.installed
-	$(PY) -m pipelines.scale_study run --data $(DATA) --main-runs $(RUNS) $(if $(SCALE_POINTS),--points $(SCALE_POINTS)) \
+	$(PY) -m pipelines.scale_study run --data $(DATA) $(if $(SCALE_POINTS),--points $(SCALE_POINTS)) \
 	  $(if $(TRAIN_ARGS),--train-args='$(TRAIN_ARGS)')
-	$(PY) -m pipelines.scale_study report --data $(DATA) --main-runs $(RUNS)
+	$(PY) -m pipelines.scale_study report --data $(DATA)
 
 # Paper metrics of every trained run under $(RUNS) on its test split (results/eval/).
 eval: $(VENV)/.installed

@@ -1,6 +1,6 @@
 """What scale buys: the default SG model along input resolution, training length and training cars (and env maps),
 everything else at the base point (the glossy set at 64 x 64, 1500 iterations, its 80 training cars under its 32
-training maps). ``make study-scale``; details and results: docs/scale.md.
+training maps: the study's own base, a quarter of the default's length, where every point was measured). ``make study-scale``; details and results: docs/scale.md.
 
     python -m pipelines.scale_study list                      # the points, and which are done
     python -m pipelines.scale_study run [--points res128,its3000,...]
@@ -10,9 +10,7 @@ Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pi
 split and on the train split (every 12th view: as many views as the test split), each in its own process (an
 entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or
 incomplete. The study's own runs go in ``--runs`` (default runs-scale/), outside the runs ``make eval`` tables: a
-run on 20 cars or of 750 iterations is not a paper row. The base point and the 200-map point are the runs ``make
-train-glossy`` and ``make study-maps`` train, read from (or trained into) ``--main-runs`` (default runs/). Every step
-resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
+run on 20 cars or of 750 iterations is not a paper row. Every step resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
 run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
 run's end. Points marked GPU are skipped where CUDA is not available.
 """
@@ -48,26 +46,28 @@ class Point:
     value: int
     dataset: str  # folder under --data
     datagen: tuple[str, ...]  # how that dataset is rendered
-    run: str  # folder under --runs, or under --main-runs if ``main``
-    train: tuple[str, ...] = ()  # flags beside the defaults
+    run: str  # folder under --runs
+    train: tuple[str, ...] = ()  # flags beside the defaults and the base's length
     gpu: bool = False
-    main: bool = False  # a run of the Makefile's own targets, which make eval tables
+
+    def train_flags(self) -> tuple[str, ...]:
+        """The point's flags of pipelines.train: the base's length unless the point sets its own."""
+        return ("--iterations", str(BASE["iterations"]), *self.train)
 
 
 @dataclass(frozen=True)
 class Folders:
     data: Path
     runs: Path  # the study's own runs
-    main_runs: Path  # make train-glossy's and make study-maps' runs
     out: Path
 
     def run(self, p: Point) -> Path:
-        return (self.main_runs if p.main else self.runs) / p.run
+        return self.runs / p.run
 
 
 GLOSSY = ("--dataset", "glossy")
 POINTS = [
-    Point("base", "base", 0, "glossy", GLOSSY, "glossy/sg-seed0", main=True),
+    Point("base", "base", 0, "glossy", GLOSSY, "base"),
     *(Point(f"res{r}", "resolution", r, f"glossy-{r}", (*GLOSSY, "--resolution", str(r)), f"res{r}",
             gpu=r > 128) for r in (16, 32, 128, 256)),
     *(Point(f"its{n}", "iterations", n, "glossy", GLOSSY, f"its{n}", ("--iterations", str(n)))
@@ -76,23 +76,22 @@ POINTS = [
       for n in (10, 20, 40)),
     # 500 objects: 400 training cars; 200 env maps: 160 training maps (the splits are 4:1)
     Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "cars400"),
-    Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "glossy-maps200/sg-seed0",
-          main=True),
+    Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "maps160"),
     # a diagnostic beside the resolution axis: the global code read off a map a sixteenth of the image's side
     # (8 x 8 at 128², a fully connected layer 4x the 64² model's), as before the default's fixed 4 x 4 (docs/scale.md)
     Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "res128-grid0",
           ("--global-grid", "0")),
-    # the metallic set (a mirror paint: the input a distorted picture of the map) at the best glossy point, beside
-    # make train-metallic's 64² run
+    # the metallic set (a mirror paint: the input a distorted picture of the map) at the best glossy point
     Point("metallic128", "diagnostic", 128, "metallic-128", ("--dataset", "metallic", "--resolution", "128"),
           "metallic128"),
-    # and at the best glossy length, beside make train-metallic's 1500-iteration run
+    # and at the best glossy length (the default's)
     Point("metallic6000", "diagnostic", 6000, "metallic", ("--dataset", "metallic"), "metallic6000",
           ("--iterations", "6000")),
     # the light head told the GT map (a diagnostic variant): what holds it on unseen maps, the input's size, the
-    # number of maps or the training's length (make train-variants' run is the 64², 32-map, 1500-iteration one)
+    # number of maps or the training's length
     *(Point(name, "diagnostic", 0, data, flags, name, ("--variant", "light-supervised-map", *train))
       for name, data, flags, train in (
+          ("light-supervised-map", "glossy", GLOSSY, ()),
           ("res128-light-supervised-map", "glossy-128", (*GLOSSY, "--resolution", "128"), ()),
           ("res128-maps160-light-supervised-map", "glossy-maps200-128",
            (*GLOSSY, "--num-envmaps", "200", "--resolution", "128"), ()),
@@ -140,7 +139,7 @@ def run_point(p: Point, folders: Folders, train_args: tuple[str, ...] = ()) -> N
     if not complete(dataset):
         sh("-m", "datagen", *p.datagen, "--out", str(dataset), "--quiet")
     device = ("--device", "cuda") if p.gpu else ()
-    flags = () if is_run(run) else ("--dataset", str(dataset), "--seed", "0", *train_args, *p.train, *device)
+    flags = () if is_run(run) else ("--dataset", str(dataset), "--seed", "0", *train_args, *p.train_flags(), *device)
     sh("-m", "pipelines.train", "--out", str(run), "--resume", "--no-progress", *flags)
     sh("-m", "pipelines.evaluate", "--runs", str(run), "--out", str(out / "test"), *device)
     sh("-m", "pipelines.evaluate", "--runs", str(run), "--out", str(out / "train"), "--split", "train",
@@ -183,8 +182,8 @@ def train_minutes(run: Path) -> float | None:
 
 def nominal(p: Point) -> dict:
     """What a point's run must have been trained with: its dataset's folder name, iterations, training cars."""
-    flags = dict(zip(p.train[::2], p.train[1::2]))
-    return {"dataset": p.dataset, "iterations": int(flags.get("--iterations", BASE["iterations"])),
+    flags = dict(zip(p.train_flags()[::2], p.train_flags()[1::2]))  # the point's own length last
+    return {"dataset": p.dataset, "iterations": int(flags["--iterations"]),
             "train_objects": int(flags.get("--train-objects", 0))}
 
 
@@ -299,8 +298,6 @@ def main(argv=None) -> int:
                     "the machine can run, in the listed order)")
     ap.add_argument("--data", default="data", type=Path, help="datasets folder (default: data)")
     ap.add_argument("--runs", default="runs-scale", type=Path, help="the study's own runs (default: runs-scale)")
-    ap.add_argument("--main-runs", default="runs", type=Path, help="the runs make eval tables, where the base point "
-                    "(make train-glossy's glossy/sg-seed0) and the 200-map point (make study-maps') are (default: runs)")
     ap.add_argument("--out", default="results/scale", type=Path, help="results folder (default: results/scale)")
     ap.add_argument("--train-args", default="", help="flags for every new run, e.g. --train-args='--threads 1' (runs "
                     "that repeat bit for bit)")
@@ -318,9 +315,9 @@ def main(argv=None) -> int:
         train_args = check_train_args(args.train_args)
         if args.command == "run" and not args.data.is_dir():
             raise DataError(f"--data {args.data}: no such folder; give the folder the datasets are in (or go in)")
-        for flag, folder in (("--runs", args.runs), ("--main-runs", args.main_runs), ("--out", args.out)):
+        for flag, folder in (("--runs", args.runs), ("--out", args.out)):
             check_output_folder(flag, folder)
-        folders = Folders(args.data, args.runs, args.main_runs, args.out)
+        folders = Folders(args.data, args.runs, args.out)
         if args.command == "list":
             list_points(folders)
         elif args.command == "report":

@@ -42,7 +42,7 @@ class TrainConfig:
     train_objects: int = _opt(0, "train on the training split's first N objects only (their every env map and view): "
                               "learning curves; 0 for all", minimum=0)
     # schedule
-    iterations: int = _opt(1500, "training iterations", minimum=1)
+    iterations: int = _opt(6000, "training iterations", minimum=1)
     batch_objects: int = _opt(8, "(sample, view pair) items per iteration", minimum=1, maximum=256)
     lr: float = _opt(3e-4, "Adam learning rate", above=0.0)
     lr_schedule: str = _opt("cosine-tail", "the learning rate over the run: constant for two thirds, then a cosine decay "
@@ -184,7 +184,7 @@ class TrainConfig:
 
 
 PRESETS = {
-    "cpu": {},  # 64x64, 1500 iterations: a run of each method finishes on 2 cores in ~6-11 min
+    "cpu": {},  # 64x64, 6000 iterations: an SG run trains on 2 cores in ~22-45 min
     "smoke": dict(iterations=12, batch_objects=2, log_every=2, checkpoint_every=4, spp=2),
     # the paper's batch, samples and length; its 256 x 256 images are the dataset's (datagen --preset paper)
     "paper": dict(iterations=200_000, batch_objects=16, spp=64, checkpoint_every=1000, log_every=50),

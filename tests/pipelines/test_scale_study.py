@@ -16,6 +16,15 @@ def test_each_axis_holds_the_base_point_and_at_least_four_points_in_order():
     assert all(len(scale_study.on_axis(a)) >= 4 for a in ("resolution", "iterations", "cars"))
 
 
+def test_every_point_trains_at_the_study_s_base_length_unless_it_sets_its_own():
+    from pipelines.training.config import TrainConfig
+
+    assert scale_study.BASE["iterations"] != TrainConfig().iterations  # the study's own base, not the default's length
+    for name in ("base", "cars10", "res128", "maps160", "light-supervised-map"):
+        assert scale_study.nominal(scale_study.BY_NAME[name])["iterations"] == scale_study.BASE["iterations"], name
+    assert scale_study.nominal(scale_study.BY_NAME["its3000"])["iterations"] == 3000
+
+
 def test_an_unknown_point_is_refused_by_name(capsys):
     assert scale_study.main(["run", "--points", "res128,res99"]) == 2
     assert "no point res99" in capsys.readouterr().err
@@ -26,13 +35,13 @@ def test_an_unknown_point_is_refused_by_name(capsys):
 @pytest.mark.slow
 def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy, tmp_path, monkeypatch, capsys):
     two = ("--iterations", "2")  # the points' own length: a run is a point's only if trained as the point says
-    points = [scale_study.Point("base", "base", 0, "glossy", (), "glossy/sg-seed0", two, main=True),
+    points = [scale_study.Point("base", "base", 0, "glossy", (), "base", two),
               scale_study.Point("cars2", "cars", 2, "glossy", (), "cars2", ("--train-objects", "2", *two)),
               scale_study.Point("gpu", "resolution", 256, "glossy", (), "gpu", gpu=True)]
     monkeypatch.setattr(scale_study, "POINTS", points)
     monkeypatch.setattr(scale_study, "BY_NAME", {p.name: p for p in points})
-    runs, main_runs, out = tmp_path / "runs-scale", tmp_path / "runs", tmp_path / "out"
-    where = ["--data", str(tiny_glossy.parent), "--runs", str(runs), "--main-runs", str(main_runs), "--out", str(out)]
+    runs, out = tmp_path / "runs-scale", tmp_path / "out"
+    where = ["--data", str(tiny_glossy.parent), "--runs", str(runs), "--out", str(out)]
     points_to_run = "base,cars2" if torch.cuda.is_available() else "base,cars2,gpu"
     assert scale_study.main(["run", *where, "--points", points_to_run,
                              "--train-args=--preset smoke --shading sg --lobes 4 --no-compile"]) == 0
@@ -43,7 +52,7 @@ def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy,
     for split in ("test", "train"):
         r = scale_study.result(out, split, runs / "cars2")
         assert r["split"] == split and r["iteration"] == 2
-    assert scale_study.result(out, "train", main_runs / "glossy" / "sg-seed0")["view_stride"] == scale_study.TRAIN_SPLIT_STRIDE
+    assert scale_study.result(out, "train", runs / "base")["view_stride"] == scale_study.TRAIN_SPLIT_STRIDE
 
     scale_study.main(["list", *where])
     listed = capsys.readouterr().out
@@ -58,8 +67,8 @@ def test_the_study_trains_evaluates_both_splits_and_draws_each_axis(tiny_glossy,
 
 
 def _where(tmp_path):
-    return ["--data", str(tmp_path / "data"), "--runs", str(tmp_path / "runs-scale"), "--main-runs",
-            str(tmp_path / "runs"), "--out", str(tmp_path / "out" / "scale")]
+    return ["--data", str(tmp_path / "data"), "--runs", str(tmp_path / "runs-scale"), "--out",
+            str(tmp_path / "out" / "scale")]
 
 
 def _one_error_line(capsys) -> str:
@@ -105,7 +114,7 @@ def test_bad_flags_are_one_error_line_before_anything_runs(tmp_path, capsys, arg
 def test_a_run_that_is_not_what_its_point_says_is_neither_tabled_nor_resumed(tmp_path, capsys):
     from pipelines.training.config import TrainConfig
 
-    base = tmp_path / "runs" / "glossy" / "sg-seed0"  # a 4-iteration run where the 1500-iteration base belongs
+    base = tmp_path / "runs-scale" / "base"  # a 4-iteration run where the 1500-iteration base belongs
     base.mkdir(parents=True)
     (base / "config.json").write_text(json.dumps(TrainConfig(dataset=str(tmp_path / "data" / "glossy"),
                                                              iterations=4).to_dict()))
