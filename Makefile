@@ -25,7 +25,7 @@ TRAIN_ARGS ?=
 
 help:
 	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
-	@echo "make first-look       the glossy set, SG, seed 0, evaluated (~35 min on 2 cores)"
+	@echo "make first-look       the glossy set, SG, seed 0, evaluated (32 min on 2 cores)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
