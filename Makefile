@@ -43,7 +43,7 @@ help:
 	@echo "make studies          renderer studies, Figures A-E: samples vs roughness, SG fits, ambiguity, joint fits (results/studies/)"
 	@echo "make study-reflections  how much of the glossy cars' reflection two views share (1.5 min; results/studies/)"
 	@echo "make study-maps      glossy cars under 200 env maps instead of 40: data, two SG runs, cross-evaluation (~1.2 h)"
-	@echo "make study-scale      the default SG model along resolution, length and data: runs in runs-scale/, curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; all of them ~15 h on 2 cores)"
+	@echo "make study-scale      the SG model about a 1500-iteration base along resolution, length and data: runs in runs-scale/, curves in results/scale/ (resumable; SCALE_POINTS=res128,cars20,... picks points; all of them ~15 h on 2 cores)"
 	@echo "make study-resolution  the metallic sun at 32 x 32 against 64 x 64: data, an SG run, evaluation, diagnosis (~1.3 h)"
 
 setup: system-libs $(VENV)/.installed

@@ -1,6 +1,7 @@
-"""What scale buys: the default SG model along input resolution, training length and training cars (and env maps),
+"""What scale buys: the SG model along input resolution, training length and training cars (and env maps),
 everything else at the base point (the glossy set at 64 x 64, 1500 iterations, its 80 training cars under its 32
-training maps: the study's own base, a quarter of the default's length, where every point was measured). ``make study-scale``; details and results: docs/scale.md.
+training maps: the study's own base, a quarter of the default's length, where every point was measured).
+``make study-scale``; details and results: docs/scale.md.
 
     python -m pipelines.scale_study list                      # the points, and which are done
     python -m pipelines.scale_study run [--points res128,its3000,...]
@@ -10,9 +11,10 @@ Each point is a run folder, trained by ``pipelines.train`` and evaluated by ``pi
 split and on the train split (every 12th view: as many views as the test split), each in its own process (an
 entry point does not import another); a point's dataset is rendered by ``datagen`` when it is missing or
 incomplete. The study's own runs go in ``--runs`` (default runs-scale/), outside the runs ``make eval`` tables: a
-run on 20 cars or of 750 iterations is not a paper row. Every step resumes: rerun after an interruption. Each length is its own run with its own schedule (the cosine tail over the
-run's last third): a checkpoint taken half-way through a longer run is at the full learning rate, not a shorter
-run's end. Points marked GPU are skipped where CUDA is not available.
+run on 20 cars or of 750 iterations is not a paper row. Every step resumes: rerun after an interruption. Each
+length is its own run with its own schedule (the cosine tail over the run's last third): a checkpoint taken
+half-way through a longer run is at the full learning rate, not a shorter run's end. Points marked GPU are
+skipped where CUDA is not available.
 """
 from __future__ import annotations
 
@@ -234,7 +236,7 @@ def report(folders: Folders) -> None:
     """Every axis's table, curves and light row; every run is read before anything is written, so a broken run
     leaves the earlier report as it was."""
     out = folders.out
-    text = ["# Scale study: the default SG model along each axis", "",
+    text = ["# Scale study: the SG model about its 1500-iteration base along each axis", "",
             "Test split (unseen cars under unseen maps) unless marked train; (×) is the ratio to a constant map's score.", ""]
     axes = {}
     for axis in BASE:
