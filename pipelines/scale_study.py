@@ -184,7 +184,8 @@ def train_minutes(run: Path) -> float | None:
 
 def nominal(p: Point) -> dict:
     """What a point's run must have been trained with: its dataset's folder name, iterations, training cars."""
-    flags = dict(zip(p.train_flags()[::2], p.train_flags()[1::2]))  # the point's own length last
+    words = p.train_flags()
+    flags = dict(zip(words[::2], words[1::2]))  # the point's own length last wins
     return {"dataset": p.dataset, "iterations": int(flags["--iterations"]),
             "train_objects": int(flags.get("--train-objects", 0))}
 
