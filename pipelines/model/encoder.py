@@ -41,7 +41,7 @@ MODEL_VERSION = 9  # bump when parameters or their meaning change (training.earl
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 
 # the allowed values of the model's string options
-CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground", "two-colour"),
+CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
            "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
 
@@ -60,8 +60,7 @@ class ModelConfig:
     texture_width: int = 64
     texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
     # white: white-balanced light | free: any colour | sky-ground: white-balanced, and the probe head's sky tinted by
-    # a colour above the horizon and one below (ProbeLightHead.hemisphere_colour; as white with the global head) |
-    # two-colour: sky-ground whose per-cell refinement of the sky changes its brightness only, not its colour
+    # a colour above the horizon and one below (ProbeLightHead.hemisphere_colour; as white with the global head)
     light_colour: str = "white"
     # global: the light regressed from the global code | probe: read from the input through the predicted
     # geometry (pipelines.model.light_probe), in the probe frame
@@ -180,8 +179,7 @@ class Encoder(nn.Module):
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             sky_ground=c.light_colour in ("sky-ground", "two-colour"),
-                                             grey_residual=c.light_colour == "two-colour")
+                                             sky_ground=c.light_colour == "sky-ground")
         else:
             light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
             self.light_head = nn.Linear(512, light_out)

@@ -202,8 +202,7 @@ class ProbeLightHead(nn.Module):
     """
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
-                 max_log_radiance: float, code: int = 512, channels: int = 32, sky_ground: bool = False,
-                 grey_residual: bool = False):
+                 max_log_radiance: float, code: int = 512, channels: int = 32, sky_ground: bool = False):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -235,7 +234,6 @@ class ProbeLightHead(nn.Module):
         nn.init.zeros_(self.sun.weight)
         with torch.no_grad():
             self.sun.bias.copy_(torch.tensor([math.log(100.0), 3.0, 3.0, 3.0]))  # a sharp lobe ~20x the sky
-        self.grey_residual = grey_residual
         self.sky_ground = None
         if sky_ground:  # its own draws (zeroed anyway): every other weight starts as white light alone's
             with torch.random.fork_rng(devices=[]):
@@ -261,10 +259,7 @@ class ProbeLightHead(nn.Module):
         mostly the paint's), refined by the residual (and with ``sky_ground``, tinted by the sky's and the ground's
         colours), sampled at the fixed axes."""
         cue = grid[:, :3].mean(1, keepdim=True)
-        detail = residual[:, :3]
-        if self.grey_residual:  # brightness only: a per-cell colour took the sky's blue out (docs/experiments.md, 45)
-            detail = detail.mean(1, keepdim=True)
-        log_map = torch.log(cue + LOG_EPS) + detail + self.log_gain
+        log_map = torch.log(cue + LOG_EPS) + residual[:, :3] + self.log_gain
         if self.sky_ground is not None:
             log_map = log_map + self.hemisphere_colour(grid, code, probe_to_world)
         return torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))

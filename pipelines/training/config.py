@@ -67,8 +67,8 @@ class TrainConfig:
     texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
                         ("projected", "global"))
     light_colour: str = _opt("sky-ground", "white-balanced light whose sky (the probe head's) is tinted by a colour above "
-                             "the horizon and one below (two-colour: and no other colour in the sky), white-balanced "
-                             "light alone, or light of any colour", ("sky-ground", "two-colour", "white", "free"))
+                             "the horizon and one below, white-balanced light alone, or light of any colour",
+                             ("sky-ground", "white", "free"))
     light_head: str = _opt("probe", "light read from the input through the predicted geometry (probe: the object as a "
                            "light probe) or regressed from the global code (global, the paper's); SH light is always "
                            "regressed", ("probe", "global"))

@@ -11,7 +11,7 @@ from dibrpp.brdf import MIN_ALPHA, alpha_from_roughness
 from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines.training import losses
-from pipelines.model.light_probe import ProbeLightHead, compress_radiance, pixel_samples
+from pipelines.model.light_probe import compress_radiance, pixel_samples
 from pipelines.model.encoder import Encoder, ModelConfig, squash
 from pipelines.model.prediction import white_balance
 from pipelines.model.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
@@ -292,20 +292,3 @@ def test_a_global_grid_of_4_keeps_the_fully_connected_layer_at_larger_inputs_and
     assert torch.isfinite(pred.meshes().verts).all()
     sides = {s: ModelConfig(image_size=s, global_grid=4).grid_side() for s in (32, 64, 96, 128, 256)}
     assert sides == {32: 2, 64: 4, 96: 3, 128: 4, 256: 4}
-
-
-def test_the_two_colour_sky_takes_its_colour_from_above_and_below_the_horizon_only():
-    """light_colour two-colour: the head's per-cell refinement of the sky changes its brightness and not its colour,
-    so a refinement that paints cells blue leaves every sky lobe's chromaticity where the sky's and the ground's
-    colours put it; under sky-ground the same refinement colours the lobes."""
-    torch.manual_seed(0)
-    grid, code, probe_to_world = torch.rand(1, 8, 16, 32) + 0.1, torch.randn(1, 512), torch.eye(3)[None]
-    plain = torch.zeros(1, 4, 16, 32)
-    painted = plain.clone()
-    painted[:, 2] = torch.randn(16, 32)  # the blue channel's log-radiance refinement, cell by cell
-    for grey in (True, False):
-        head = ProbeLightHead("sg", 32, 16, 32, 3000.0, 10.0, sky_ground=True, grey_residual=grey)
-        chroma = lambda residual: (s := head.sky(grid, residual, code, probe_to_world)) / s.sum(-1, keepdim=True)  # noqa: E731
-        assert torch.allclose(chroma(plain), chroma(painted), atol=1e-5) == grey
-    model = Encoder(ModelConfig(image_size=32, light_head="probe", light_colour="two-colour"))
-    assert model.light_head.grey_residual and model.light_head.sky_ground is not None
