@@ -70,6 +70,8 @@ SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"
 # training options of experiments that left the code later, the model unchanged, by the last commit with their code:
 # the value(s) under which the run is the default model
 LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}}
+# choices of a kept option whose experiments left the code later: option -> {choice: the last commit with its code}
+CHOICES_LEFT_LATER = {"light_colour": {"sky-prior": "97ea15f", "two-colour": "140a12d"}}
 # settings of how a run ran, not of what it trains, that left the config for a flag of train: dropped, any value
 RUN_SETTINGS_LEFT = ("threads",)
 # variants that became the default: their runs are the default model (their fields are the default's values now)
@@ -85,10 +87,14 @@ def _drop_retired(values: dict, retired: dict, commit: str = LAST_COMMIT) -> Non
 
 def without_options_left_later(saved: dict) -> dict:
     """A run's config without the options of experiments that left the code after version 8: dropped where they held
-    the default's value (the run is this code's model), refused naming the commit that has them otherwise."""
+    the default's value (the run is this code's model), refused naming the commit that has them otherwise, as are runs
+    of a retired choice (CHOICES_LEFT_LATER)."""
     values = dict(saved)
     for commit, retired in LEFT_LATER.items():
         _drop_retired(values, retired, commit)
+    for name, gone in CHOICES_LEFT_LATER.items():
+        if (value := values.get(name)) in gone:
+            raise _refuse(f"the run was trained with {name}={value!r}", gone[value])
     for name in RUN_SETTINGS_LEFT:
         values.pop(name, None)
     if values.get("variant") in BECAME_DEFAULT:

@@ -594,6 +594,10 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
     assert load_config(run("default", 0.0)) == TrainConfig(iterations=6000)  # written while the option existed
     with pytest.raises(DataError, match=r"w_albedo_variation=1\.0.*git checkout 84e9556"):
         load_config(run("albedo-variation", 1.0))
+    (tmp_path / "two-colour").mkdir()
+    (tmp_path / "two-colour" / "config.json").write_text(json.dumps({**TrainConfig().to_dict(), "light_colour": "two-colour"}))
+    with pytest.raises(DataError, match=r"light_colour='two-colour'.*git checkout 140a12d"):
+        load_config(tmp_path / "two-colour")
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
