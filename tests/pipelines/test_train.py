@@ -585,19 +585,18 @@ def test_a_run_written_before_the_house_change_reads_as_it_was_or_is_refused_nam
 def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refused_naming_its_commit(tmp_path):
     from pipelines.training.runs import load_config
 
-    def run(name: str, weight: float) -> Path:
+    def run(name: str, **saved_fields) -> Path:
         (tmp_path / name).mkdir()
-        saved = {**TrainConfig(iterations=6000).to_dict(), "w_albedo_variation": weight}
+        saved = {**TrainConfig(iterations=6000).to_dict(), **saved_fields}
         (tmp_path / name / "config.json").write_text(json.dumps(saved))
         return tmp_path / name
 
-    assert load_config(run("default", 0.0)) == TrainConfig(iterations=6000)  # written while the option existed
+    # written while the option existed
+    assert load_config(run("default", w_albedo_variation=0.0)) == TrainConfig(iterations=6000)
     with pytest.raises(DataError, match=r"w_albedo_variation=1\.0.*git checkout 84e9556"):
-        load_config(run("albedo-variation", 1.0))
-    (tmp_path / "two-colour").mkdir()
-    (tmp_path / "two-colour" / "config.json").write_text(json.dumps({**TrainConfig().to_dict(), "light_colour": "two-colour"}))
+        load_config(run("albedo-variation", w_albedo_variation=1.0))
     with pytest.raises(DataError, match=r"light_colour='two-colour'.*git checkout 140a12d"):
-        load_config(tmp_path / "two-colour")
+        load_config(run("two-colour", light_colour="two-colour"))
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
