@@ -77,10 +77,6 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), or both that and its own (a render under each: one "
                                  "world light has to explain both views)", ("both", "view"))
-    own_light_material: str = _opt("learnt", "the surface's reflection (roughness, specular, metallic) in the renders under "
-                                   "the prediction's own light in the other view (cross_view_light both): learnt from "
-                                   "them too, or held there (no gradient): they show reflections of light its view did "
-                                   "not see", ("learnt", "held"))
     global_grid: int = _opt(4, "side of the feature map the global code (shape, material) is read from: the image side / 16 "
                             "halved while above this (4: one more downsampling block per doubling above 64², so the "
                             "fully connected layer is the same at any larger input), or 0 for the image side / 16", minimum=0)

@@ -399,21 +399,6 @@ def test_cross_view_renders_are_lit_by_the_views_light_and_again_by_the_predicti
     assert torch.equal(both.lit_by[n:], view.src[cross])
 
 
-def test_held_reflection_gets_no_gradient_from_the_renders_under_the_predictions_own_light():
-    from dibrpp.brdf import Material
-    from pipelines.training.objective import reflection_held, render_plan
-    plan = render_plan(2, TrainConfig())
-    own = plan.lit_by != plan.dst  # the cross-view renders again under the prediction's own light
-    assert own.sum() == 4 and torch.equal(plan.lit_by[own], plan.src[own])
-    level = torch.rand(len(plan.src), requires_grad=True)
-    albedo = torch.rand(len(plan.src), 3, requires_grad=True)
-    held = reflection_held(Material(albedo, roughness=2 * level, metallic=3 * level, specular=level), own)
-    assert torch.equal(held.specular, level) and torch.equal(held.roughness, 2 * level)  # the same values
-    (held.roughness + held.metallic + held.specular).sum().backward()
-    assert level.grad[own].eq(0).all() and level.grad[~own].eq(6).all()
-    assert held.albedo is albedo  # the paint is learnt from every render
-
-
 def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     """The probe head's sun floor: the image is the full light's, but the sun (the last lobe) sends no gradient to the shape,
     while the other lobes do."""
@@ -612,6 +597,9 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
         load_config(run("albedo-variation", w_albedo_variation=1.0))
     with pytest.raises(DataError, match=r"light_colour='two-colour'.*git checkout 140a12d"):
         load_config(run("two-colour", light_colour="two-colour"))
+    assert load_config(run("default-2", own_light_material="learnt")) == TrainConfig(iterations=6000)
+    with pytest.raises(DataError, match=r"own_light_material='held'.*git checkout de11f3d"):
+        load_config(run("own-light-held", own_light_material="held"))
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
