@@ -34,6 +34,7 @@ help:
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
 	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~4 min)"
+	@echo "make data-glossy-elevations  the glossy set with its views at 12, 22, 32 and 42 degrees of elevation in turn"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
 	@echo "make train-published  DIB-R++ as published: SG and MC on each dataset, SG seeds 1-2 on glossy (Tables 1, C, F)"
@@ -91,6 +92,12 @@ data-glossy-hdri: $(VENV)/.installed
 # python -m pipelines.evaluate --runs runs/metallic --dataset data/metallic-sunny --split all --out results/eval-metallic-sunny
 data-metallic-sunny: $(VENV)/.installed
 	$(PY) -m datagen --dataset metallic --outdoor-share 1 --num-objects 30 --num-envmaps 30 --seed 1 --out $(DATA)/metallic-sunny
+
+# The glossy set with its views at 12, 22, 32 and 42 degrees of elevation in turn (the same cars, maps and splits):
+# to train on more than one elevation, or to ask how a model reads views from other elevations than its own:
+# python -m pipelines.evaluate --runs runs/glossy --dataset data/glossy-elevations --out results/eval-elevations
+data-glossy-elevations: $(VENV)/.installed
+	$(PY) -m datagen --dataset glossy --elevations 12,22,32,42 --out $(DATA)/glossy-elevations
 
 # Resumable: rerunning skips finished samples and redoes partial ones.
 data-%: $(VENV)/.installed

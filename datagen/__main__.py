@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dibrpp.cli_args import Parser, non_negative_int, positive_int, unit_fraction
+from dibrpp.cli_args import Parser, elevation_list, non_negative_int, positive_int, unit_fraction
 
 
 def preset_default(key: str) -> str:
@@ -32,6 +32,9 @@ def _preset_flags(p: argparse.ArgumentParser) -> None:
                    help="views per object (default: 24; 12 front views for diffuse)")
     p.add_argument("--max-bounces", type=non_negative_int, metavar="N",
                    help=f"Cycles light bounces ({preset_default('max_bounces')})")
+    p.add_argument("--elevations", type=elevation_list, metavar="DEG[,DEG...]",
+                   help="camera elevations in degrees that the views take in turn (default: every view at 27); "
+                        "e.g. 12,27,42: views 0, 3, 6, ... at 12, views 1, 4, ... at 27, views 2, 5, ... at 42")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -100,7 +103,7 @@ def main(argv=None) -> int:
                           spp=args.spp, seed=args.seed, texture_size=args.texture_size,
                           envmap_height=args.envmap_height, max_bounces=args.max_bounces,
                           grid=args.grid, envmaps=args.envmaps, procedural_envmaps=args.procedural_envmaps,
-                          denoise=args.denoise, outdoor_share=args.outdoor_share)
+                          denoise=args.denoise, outdoor_share=args.outdoor_share, elevations=args.elevations)
         shard = parse_shard(args.shard)
         if args.cycles_device == "gpu":
             check_gpu()

@@ -29,7 +29,7 @@ RESOLUTION_MULTIPLE = 16
 _POSITIVE = ("num_objects", "num_envmaps", "envs_per_object", "views", "resolution", "spp", "texture_size",
              "envmap_height", "grid")
 # Optional settings: left out of the manifest while unset, so older datasets keep matching their config.
-_OPTIONAL = ("envmaps_dir", "procedural_envmaps", "denoise", "outdoor_share")
+_OPTIONAL = ("envmaps_dir", "procedural_envmaps", "denoise", "outdoor_share", "elevations")
 OUTDOOR_SHARE = 0.6  # the share of procedural env maps that are skies (the rest are rooms), unless set
 
 
@@ -52,6 +52,7 @@ class Config:
     procedural_envmaps: int | None = None  # with envmaps_dir: how many procedural maps follow the files
     denoise: bool | None = None  # OpenImageDenoise on the shaded renders (albedo + normal guides)
     outdoor_share: float | None = None  # share of the procedural maps that are skies (None: OUTDOOR_SHARE)
+    elevations: list[float] | None = None  # camera elevations (deg) the views take in turn (None: the default's)
 
     @property
     def num_file_envmaps(self) -> int:
@@ -75,6 +76,9 @@ class Config:
         if self.outdoor_share is not None and not 0.0 <= float(self.outdoor_share) <= 1.0:
             raise ValueError(f"--outdoor-share is the share of procedural maps that are skies, in [0, 1]; got "
                              f"{self.outdoor_share}")
+        if self.elevations is not None and not (self.elevations and all(-90 < e < 90 for e in self.elevations)):
+            raise ValueError(f"--elevations {self.elevations}: give one or more elevations strictly between -90 and "
+                             "90 degrees (a camera at a pole has no up direction)")
         if self.envmaps_dir and self.num_file_envmaps <= 0:
             raise ValueError(f"--envmaps {self.envmaps_dir}: no env map files counted")
 

@@ -37,13 +37,16 @@ __all__ = ["CameraSetup", "DEFAULT_CAMERA", "DatasetLayout", "ManifestError"]
 @dataclass(frozen=True)
 class CameraSetup:
     """The orbit cameras of a dataset: every view looks at the origin from ``distance`` at ``elevation_deg``
-    and one azimuth of ``azimuths_deg``, with Blender's ``fov`` (radians, square image)."""
+    and one azimuth of ``azimuths_deg``, with Blender's ``fov`` (radians, square image). A set made with
+    ``--elevations`` has each view's elevation in ``elevations_deg`` (aligned with the azimuths) and their median
+    in ``elevation_deg``."""
 
     distance: float
     elevation_deg: float
     fov: float
     azimuths_deg: tuple = ()
     resolution: int | None = None
+    elevations_deg: tuple = ()
 
     @property
     def fov_deg(self) -> float:
@@ -62,15 +65,25 @@ class CameraSetup:
             res = c.get("resolution")
             return cls(distance=float(c["distance"]), elevation_deg=float(c["elevation_deg"]), fov=float(c["fov"]),
                        azimuths_deg=tuple(float(a) for a in c.get("azimuths_deg", ())),
-                       resolution=None if res is None else int(res))
+                       resolution=None if res is None else int(res),
+                       elevations_deg=tuple(float(e) for e in c.get("elevations_deg", ())))
         except (TypeError, ValueError) as e:
             raise ValueError(f"the manifest's 'camera' is malformed ({e}); expected numbers distance, "
-                             "elevation_deg, fov, a list azimuths_deg and an integer resolution") from e
+                             "elevation_deg, fov, a list azimuths_deg (and elevations_deg) and an integer "
+                             "resolution") from e
 
     def to_manifest(self) -> dict:
-        """The manifest's ``camera`` entry (key order as the generator has always written it)."""
-        return dict(distance=self.distance, elevation_deg=self.elevation_deg, fov=self.fov,
-                    azimuths_deg=list(self.azimuths_deg), resolution=self.resolution)
+        """The manifest's ``camera`` entry (key order as the generator has always written it; ``elevations_deg``
+        only where the views' elevations differ)."""
+        entry = dict(distance=self.distance, elevation_deg=self.elevation_deg, fov=self.fov,
+                     azimuths_deg=list(self.azimuths_deg), resolution=self.resolution)
+        if self.elevations_deg:
+            entry["elevations_deg"] = list(self.elevations_deg)
+        return entry
+
+    def view_elevation_deg(self, view: int) -> float:
+        """View ``view``'s elevation."""
+        return float(self.elevations_deg[view]) if self.elevations_deg else self.elevation_deg
 
 
 class ManifestError(ValueError):

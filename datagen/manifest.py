@@ -2,6 +2,7 @@
 resumes: same settings, same env map files, finished samples intact."""
 from __future__ import annotations
 
+import statistics
 from dataclasses import replace
 from pathlib import Path
 
@@ -9,7 +10,7 @@ from dibrpp.io import DataError
 
 from .config import Config, config_dict
 from .layout import DEFAULT_CAMERA, DatasetLayout
-from .plan import azimuths
+from .plan import azimuths, elevations
 from .records import read_record, write_json
 
 GENERATOR_VERSION = "1.1.0"
@@ -37,6 +38,9 @@ def _counts(cfg: Config, splits: dict) -> dict:
 def build_manifest(cfg: Config, plan: dict, sources: list) -> dict:
     """The manifest of a dataset made with ``cfg`` and ``plan``; ``sources``: the env map files, if any."""
     camera = replace(DEFAULT_CAMERA, azimuths_deg=tuple(azimuths(cfg)), resolution=cfg.resolution)
+    if cfg.elevations:
+        views = elevations(cfg)
+        camera = replace(camera, elevation_deg=float(statistics.median(views)), elevations_deg=tuple(views))
     manifest = dict(generator_version=GENERATOR_VERSION, dataset=cfg.dataset, config=config_dict(cfg),
                     seeds=dict(run=cfg.seed, scheme="numpy SeedSequence([seed, dataset, purpose, index...])"),
                     splits=plan["splits"], env_kind=plan["env_kind"],

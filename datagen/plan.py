@@ -1,10 +1,11 @@
 """What a dataset holds, decided before anything renders (pure and deterministic): seeds, splits, env map
-kinds, each object's material and env maps, and the views' azimuths."""
+kinds, each object's material and env maps, and the views' azimuths and elevations."""
 from __future__ import annotations
 
 import numpy as np
 
 from .config import OUTDOOR_SHARE, Config
+from .layout import DEFAULT_CAMERA
 
 _DATASET_CODE = {"metallic": 1, "glossy": 2, "diffuse": 3}
 # The purposes a seed is drawn for (the second key of seed_for): changing one changes the data.
@@ -27,6 +28,14 @@ def azimuths(cfg: Config) -> list[float]:
     if cfg.dataset == "diffuse":  # front views only, uniformly over the front half-circle
         return [-90.0 + 180.0 * (k + 0.5) / cfg.views for k in range(cfg.views)]
     return [360.0 * k / cfg.views for k in range(cfg.views)]
+
+
+def elevations(cfg: Config) -> list[float]:
+    """The views' camera elevations in degrees: the configured ones taken in turn (views 0, 1, 2, ... at the first,
+    second, third, ...; with three of them and 24 views, each elevation has 8 views 45 degrees apart), or the
+    default camera's for every view."""
+    cycle = cfg.elevations or [DEFAULT_CAMERA.elevation_deg]
+    return [float(cycle[v % len(cycle)]) for v in range(cfg.views)]
 
 
 def _split(n: int, rng: np.random.Generator) -> tuple[list[int], list[int]]:

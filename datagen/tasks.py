@@ -11,7 +11,7 @@ from dibrpp.io import atomic_path
 
 from .config import Config
 from .layout import DEFAULT_CAMERA, DatasetLayout
-from .plan import ENV, OBJ, azimuths, render_seed, seed_for
+from .plan import ENV, OBJ, azimuths, elevations, render_seed, seed_for
 from .records import write_json
 from .workers import cycles_device, cycles_threads, exit_if_orphaned
 
@@ -106,10 +106,10 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
     build_s = time.perf_counter() - t0
     layout.sample_dir(i, env).mkdir(parents=True, exist_ok=True)
     rendered = 0
-    for v, az in enumerate(azimuths(cfg)):
+    for v, (az, el) in enumerate(zip(azimuths(cfg), elevations(cfg))):
         if all(p.exists() for p in _view_paths(layout, i, env, v)):
             continue  # finished before a crash
-        _render_view(scene, layout, cfg, i, env, v, az)
+        _render_view(scene, layout, cfg, i, env, v, az, el)
         rendered += 1
     total = time.perf_counter() - t0
     timing = dict(total_s=total, cycles_s=scene.render_seconds, build_s=build_s, views_rendered=rendered,
@@ -138,8 +138,9 @@ def _sample_scene(layout: DatasetLayout, cfg: Config, i: int, env: int, info: di
                               uvs=uvs, face_uvs=face_uvs)
 
 
-def _render_view(scene, layout: DatasetLayout, cfg: Config, i: int, env: int, v: int, az: float) -> None:
-    """Render view ``v`` (azimuth ``az``) and write its five files: RGBA EXR and PNG, mask, albedo, camera."""
+def _render_view(scene, layout: DatasetLayout, cfg: Config, i: int, env: int, v: int, az: float, el: float) -> None:
+    """Render view ``v`` (azimuth ``az``, elevation ``el``) and write its five files: RGBA EXR and PNG, mask, albedo,
+    camera."""
     import torch
 
     from dibrpp.conventions import orbit_world_to_camera
@@ -148,7 +149,7 @@ def _render_view(scene, layout: DatasetLayout, cfg: Config, i: int, env: int, v:
     from . import cycles
 
     cam = DEFAULT_CAMERA
-    w2c = orbit_world_to_camera(torch.tensor(cam.distance, dtype=torch.float64), cam.elevation_deg, az)
+    w2c = orbit_world_to_camera(torch.tensor(cam.distance, dtype=torch.float64), el, az)
     cycles.set_camera(scene, w2c.numpy(), cam.fov)
     cycles.set_seed(scene, render_seed(cfg, i, env, v))
     res = cycles.render(scene)
@@ -160,7 +161,7 @@ def _render_view(scene, layout: DatasetLayout, cfg: Config, i: int, env: int, v:
     write_png(mask, rgba[..., 3])
     write_exr(albedo_exr, albedo)
     write_json(camera_json, dict(world_to_camera=w2c.tolist(), fov=cam.fov, resolution=cfg.resolution,
-                                 azimuth_deg=az, elevation_deg=cam.elevation_deg, distance=cam.distance,
+                                 azimuth_deg=az, elevation_deg=el, distance=cam.distance,
                                  convention="dibrpp.conventions: world +Z up, camera looks down -Z, +Y up"))
 
 
@@ -168,5 +169,6 @@ def _sample_record(layout: DatasetLayout, cfg: Config, i: int, env: int, info: d
     """sample.json: what the sample is, every file with its size, the render seeds and the timing."""
     files = {p.name: p.stat().st_size for v in range(cfg.views) for p in _view_paths(layout, i, env, v)}
     return dict(object=i, envmap=env, split=info["split"], material=info["material"], views=cfg.views,
-                azimuths_deg=azimuths(cfg), files=files,
+                azimuths_deg=azimuths(cfg), **(dict(elevations_deg=elevations(cfg)) if cfg.elevations else {}),
+                files=files,
                 render_seeds=[render_seed(cfg, i, env, v) for v in range(cfg.views)], timing=timing)

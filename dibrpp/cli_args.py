@@ -102,6 +102,18 @@ def unit_rgb(text: str) -> tuple[float, float, float]:
     return values
 
 
+def elevation_list(text: str) -> list[float]:
+    """DEG[,DEG...]: camera elevations in degrees, each strictly between -90 and 90."""
+    try:
+        values = [_number(x, float) for x in text.split(",")]
+    except argparse.ArgumentTypeError:
+        values = []
+    if not values or not all(-90 < v < 90 for v in values):
+        raise argparse.ArgumentTypeError(f"expected elevations in degrees separated by commas, each strictly between "
+                                         f"-90 and 90 (e.g. 12,27,42), got {text!r}")
+    return values
+
+
 def check_writable(flag: str, out: Path, folder: Path) -> None:
     """A :class:`DataError` naming ``flag`` and ``out`` unless this process can create a file in ``folder``."""
     try:

@@ -1,4 +1,4 @@
-"""Whether a run's light has a sky over a ground: ``python -m pipelines.diagnose_sky --runs RUN [RUN ...]``.
+"""Whether a run's light has a sky over a ground: ``python -m pipelines.diagnose_sky --runs RUN [RUN ...] [--dataset DIR]``.
 
 The light beyond the sun, measured. On the test views whose GT map has a sky brighter and bluer than its ground
 (outdoor light), each run's predicted light (world frame) and the GT map are each split at the horizon, leaving out
@@ -24,14 +24,16 @@ from dibrpp.io import DataError
 from .evaluation import metrics
 from .model.model_input import encoder_input
 from .scoring import strided_views
-from .training.runs import load_run, run_folder
+from .training.runs import check_image_size, load_run, run_folder
 
 
 @torch.no_grad()
-def diagnose(run: Path, stride: int = 3) -> dict:
-    """The sky against the ground of ``run``'s predicted light and of the GT maps on its test views with a sky."""
+def diagnose(run: Path, stride: int = 3, dataset: str | None = None) -> dict:
+    """The sky against the ground of ``run``'s predicted light and of the GT maps on the test views with a sky of
+    its dataset (or of ``dataset``)."""
     loaded = load_run(run)
-    ds = MultiViewDataset(loaded.config.dataset, split="test", views_per_item=1)
+    ds = MultiViewDataset(dataset or loaded.config.dataset, split="test", views_per_item=1)
+    check_image_size(run, loaded.model.config.image_size, ds)
     views = strided_views(ds, stride)
     pred, gt = [], []
     for start in range(0, len(views), 16):
@@ -45,7 +47,7 @@ def diagnose(run: Path, stride: int = 3) -> dict:
         pred.append(torch.stack(metrics.sky_contrast(light.to_envmap(env.shape[1], env.shape[2]).image), 1))
         gt.append(torch.stack([gt_ratio[outdoor], gt_bluer[outdoor]], 1))
     if not pred:
-        raise DataError(f"{run}: no test view of {loaded.config.dataset} has a sky brighter and bluer than its ground")
+        raise DataError(f"{run}: no test view of {ds.root} has a sky brighter and bluer than its ground")
     pred, gt = torch.cat(pred), torch.cat(gt)
     return {"views": len(pred), "ratio": float(metrics.median(pred[:, 0])), "ratio_gt": float(metrics.median(gt[:, 0])),
             "bluer": float(metrics.median(pred[:, 1])), "bluer_gt": float(metrics.median(gt[:, 1])),
@@ -71,9 +73,13 @@ def main(argv=None) -> int:
     ap.add_argument("--runs", required=True, nargs="+", metavar="DIR", help="run folders")
     ap.add_argument("--view-stride", type=positive_int, default=3, metavar="N",
                     help="every N-th test view of each object, as make eval (default: 3)")
+    ap.add_argument("--dataset", metavar="DIR",
+                    help="the test views of this dataset instead of each run's own (e.g. make data-glossy-elevations)")
     args = ap.parse_args(argv)
     try:
-        results = [(str(run), diagnose(run_folder(Path(run)), args.view_stride)) for run in args.runs]
+        if args.dataset:  # a missing or broken --dataset: said before any run is loaded
+            MultiViewDataset(args.dataset, split="test", views_per_item=1)
+        results = [(str(run), diagnose(run_folder(Path(run)), args.view_stride, args.dataset)) for run in args.runs]
     except DataError as e:
         ap.error(str(e))
     first = results[0][1]

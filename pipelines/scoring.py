@@ -28,6 +28,7 @@ FAILURE_METRICS = ("image_foreground", "iou", "light_hdr", "texture", "chamfer",
 MIN_SAMPLES = 10
 EVAL_SPP, EVAL_VIEW_STRIDE = 64, 3  # make eval's: MC samples of the re-renderings; every 3rd view (every 45 degrees)
 FIGURE_ROWS = 4
+MEDIAN_METRICS = ("direction_deg", "normal_deg", "specular_level", "albedo_scale", "light_scale")
 METRIC_NAMES = {"image_foreground": "image L1 (foreground)", "iou": "2D IoU loss", "light_hdr": "light 1-NCC (HDR)",
                 "texture": "tex 1-NCC", "chamfer": "Chamfer", "probe_metal": "rough-metal probe si-RMSE"}
 
@@ -67,7 +68,10 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
                 **metrics.envmap_losses(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
                 "albedo_sky_blue": metrics.albedo_sky_blue(albedo, b["albedo"][:, 0], gt_n, gt_alpha),
-                "chamfer": torch.tensor(chamfer, dtype=torch.float64)}
+                "chamfer": torch.tensor(chamfer, dtype=torch.float64),
+                **material_values(pred, [ds.material_params(obj) for obj in b["object"].tolist()]),
+                "albedo_scale": metrics.albedo_scale(albedo, b["albedo"][:, 0], (gt_mask > 0.5) & (out_alpha > 0.5)),
+                "light_scale": metrics.light_scale(pred_env, env)}
     gt_light = EnvMap(env)
     probes = metrics.ProbeScene(cams.world_to_camera)
     per_view.update(metrics.light_metrics(light, gt_light, probes))
@@ -86,6 +90,14 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
                  *(v[k] for v in novel)]
                 for k in range(len(items))]
     return per_view, rows
+
+
+def material_values(pred, gt: list[dict]) -> dict:
+    """Per-view (B,) scalar material: the predicted specular level beside the GT's, and the roughness's absolute
+    error (``gt``: each view's object's ``MultiViewDataset.material_params``)."""
+    truth = lambda key: torch.tensor([m[key] for m in gt], dtype=torch.float32)  # noqa: E731
+    return {"specular_level": pred.specular.flatten().float(), "specular_level_gt": truth("specular"),
+            "roughness_error": (pred.roughness.flatten().float() - truth("roughness")).abs()}
 
 
 def figure_views(ds: MultiViewDataset) -> list[int]:
@@ -120,8 +132,9 @@ def evaluate_run(run: Path, dataset: str | None = None, batch: int = 16, eval_sp
             per_view.setdefault(k, []).append(v)
     per_view = {k: torch.cat(v) for k, v in per_view.items()}
     # means, but the direction error's median over the maps with a dominant light (it is an angle: a few
-    # flipped predictions of 180 degrees should not hide that most are right)
-    result = {k: float(metrics.median(v) if k.startswith(("direction_deg", "normal_deg")) else
+    # flipped predictions of 180 degrees should not hide that most are right), and medians of the material's
+    # levels and ratios
+    result = {k: float(metrics.median(v) if k.startswith(MEDIAN_METRICS) else
                        v.nanmean() if k.startswith(("normal", "albedo_sky")) else v.mean()) for k, v in per_view.items()}
     result["views_with_dominant_light"] = int(torch.isfinite(per_view["direction_deg"]).sum())
     for k in ("direction_deg", "direction_deg_constant"):  # each such view's error, for the distribution figure

@@ -8,6 +8,9 @@
   maps (:func:`ldr_envmap`);
 - Chamfer distance between surface samples of the predicted and GT meshes, both scaled so that the GT
   bounding-box diagonal is 1 ("normalized as one", Sec. E.6), mean of the two directed squared distances.
+
+Ours beside them: normals, the light's probes, sky and direction, the albedo's sky blue, and the material's
+scale (:func:`albedo_scale`, :func:`light_scale`).
 """
 from __future__ import annotations
 
@@ -18,6 +21,8 @@ import torch
 import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
+
+from dibrpp.conventions import equirect_solid_angles
 
 from ..model.light_probe import mirror_directions, pixel_samples
 
@@ -349,6 +354,23 @@ def albedo_sky_blue(albedo: torch.Tensor, gt_albedo: torch.Tensor, gt_normals: t
     blue = lambda a: a[..., 2] / a.sum(-1).clamp_min(1e-4)  # noqa: E731
     excess = (blue(albedo) - blue(gt_albedo)) * up
     return excess.sum((1, 2)) / up.sum((1, 2)).clamp_min(1) + torch.where(up.any(2).any(1), 0.0, float("nan"))
+
+
+def albedo_scale(albedo: torch.Tensor, gt_albedo: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:
+    """(B,) the predicted albedo's brightness over the GT's: the ratio of their sums over the pixels both
+    silhouettes cover (``covered`` (B, H, W) bool) and the three channels; NaN where none is covered. With
+    :func:`light_scale` it shows inverse rendering's scale ambiguity: the image fixes albedo x light, not each."""
+    both = covered.unsqueeze(-1)
+    gt = (gt_albedo * both).sum((1, 2, 3))
+    return (albedo * both).sum((1, 2, 3)) / gt.clamp_min(1e-12) + torch.where(gt > 0, 0.0, float("nan"))
+
+
+def light_scale(pred_env: torch.Tensor, gt_env: torch.Tensor) -> torch.Tensor:
+    """(B,) the predicted light's mean radiance over the GT map's (equirect maps (B, H, W, 3) of one size;
+    texels weighted by their solid angle, the channels averaged)."""
+    w = equirect_solid_angles(gt_env.shape[1], gt_env.shape[2], dtype=torch.float64).view(1, -1, 1, 1)
+    power = lambda env: (env.double().clamp_min(0) * w).sum((1, 2, 3))  # noqa: E731
+    return (power(pred_env) / power(gt_env).clamp_min(1e-30)).float()
 
 
 def median(values: torch.Tensor) -> torch.Tensor:

@@ -40,3 +40,13 @@ def test_a_gpu_render_is_refused_by_name_where_cycles_finds_no_gpu(tmp_path, cap
     assert cli.main(["--dataset", "glossy", "--out", str(out), "--num-objects", "2", "--cycles-device", "gpu"]) == 2
     assert "--cycles-device gpu: Cycles finds no GPU" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("value", ["12,abc", "27,90", "", "nan"])
+def test_elevations_that_are_not_cameras_are_refused_in_one_line(tmp_path, capsys, value):
+    with mock.patch("datagen.generate.generate", side_effect=AssertionError("rendering started")):
+        with pytest.raises(SystemExit) as exit_:
+            cli.main(["--dataset", "glossy", "--out", str(tmp_path / "ds"), "--elevations", value, "--quiet"])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line]
+    assert exit_.value.code == 2 and len(lines) == 1 and "--elevations" in lines[0], lines
+    assert "strictly between -90 and 90" in lines[0] and not (tmp_path / "ds").exists()

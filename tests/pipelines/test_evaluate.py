@@ -27,6 +27,9 @@ def test_evaluate_finds_runs_and_writes_metrics(tiny_glossy, tiny_glossy_two_map
     for k in ("iou", "light_ldr", "light_hdr", "texture", *summary.CONSTANT_REFERENCES):
         assert k.startswith(("colour", "direction")) or 0 <= r[k] <= 1, (k, r[k])
     assert r["image_whole"] > 0 and r["image_foreground"] > 0 and 0 < r["chamfer"] < 1
+    # the material beside the data's: the levels within their ranges, the scales positive
+    assert 0 <= r["specular_level"] <= 1 and 0 <= r["specular_level_gt"] <= 1 and 0 <= r["roughness_error"] <= 1
+    assert r["albedo_scale"] > 0 and r["light_scale"] > 0
     assert len(r["direction_deg_views"]) == len(r["direction_deg_constant_views"]) == r["views_with_dominant_light"]
     # the tiny set's one test object is lit by a map its train split uses too, and it is one sample: said, once each
     err = capsys.readouterr().err

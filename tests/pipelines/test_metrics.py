@@ -252,3 +252,28 @@ def test_the_albedo_s_sky_blue_is_read_where_the_surface_faces_up_only():
     assert float(albedo_sky_blue(pred, gt, normals, alpha)[0]) == pytest.approx((0.5 - 1 / 3) / 2)
     assert float(albedo_sky_blue(gt, gt, normals, alpha)[0]) == pytest.approx(0.0)
     assert albedo_sky_blue(gt, gt, -normals.abs(), alpha)[0].isnan()  # nothing faces up
+
+
+def test_the_albedo_s_scale_is_read_where_both_silhouettes_cover():
+    from pipelines.evaluation.metrics import albedo_scale
+
+    gt = torch.full((2, 2, 2, 3), 0.25)
+    pred = 2 * gt
+    pred[0, 1, 1] = 9.0  # outside the covered pixels: not counted
+    covered = torch.tensor([[[True, True], [True, False]], [[False, False], [False, False]]])
+    scale = albedo_scale(pred, gt, covered)
+    assert float(scale[0]) == pytest.approx(2.0) and scale[1].isnan()  # nothing covered: NaN
+
+
+def test_the_light_s_scale_weighs_texels_by_their_solid_angle():
+    from pipelines.evaluation.metrics import light_scale
+
+    gt = torch.ones(1, 8, 16, 3)
+    assert float(light_scale(3 * gt, gt)[0]) == pytest.approx(3.0)
+    pole, equator = gt.clone(), gt.clone()
+    pole[:, 0] += 1.0  # one texel row at the pole: a sliver of the sphere
+    equator[:, 3] += 1.0  # one row at the equator: the widest
+    assert 1.0 < float(light_scale(pole, gt)[0]) < float(light_scale(equator, gt)[0]) < 2.0
+    # the row between polar angles 3 pi / 8 and pi / 2 holds (cos 3 pi / 8 - cos pi / 2) / 2 of the sphere
+    band = (math.cos(3 * math.pi / 8) - math.cos(4 * math.pi / 8)) / 2
+    assert float(light_scale(equator, gt)[0]) == pytest.approx(1 + band, rel=1e-5)
