@@ -38,8 +38,8 @@ __all__ = ["CameraSetup", "DEFAULT_CAMERA", "DatasetLayout", "ManifestError"]
 class CameraSetup:
     """The orbit cameras of a dataset: every view looks at the origin from ``distance`` at ``elevation_deg``
     and one azimuth of ``azimuths_deg``, with Blender's ``fov`` (radians, square image). A set made with
-    ``--elevations`` has each view's elevation in ``elevations_deg`` (aligned with the azimuths) and their median
-    in ``elevation_deg``."""
+    ``--elevations`` has its elevations in ``elevations_deg``, taken in turn by the views (:meth:`view_elevation_deg`),
+    and their median in ``elevation_deg``."""
 
     distance: float
     elevation_deg: float
@@ -74,16 +74,18 @@ class CameraSetup:
 
     def to_manifest(self) -> dict:
         """The manifest's ``camera`` entry (key order as the generator has always written it; ``elevations_deg``
-        only where the views' elevations differ)."""
+        only for a set made with ``--elevations``)."""
         entry = dict(distance=self.distance, elevation_deg=self.elevation_deg, fov=self.fov,
                      azimuths_deg=list(self.azimuths_deg), resolution=self.resolution)
         if self.elevations_deg:
             entry["elevations_deg"] = list(self.elevations_deg)
         return entry
 
-    def view_elevation_deg(self, view: int) -> float:
-        """View ``view``'s elevation."""
-        return float(self.elevations_deg[view]) if self.elevations_deg else self.elevation_deg
+    def view_elevation_deg(self, obj: int, view: int) -> float:
+        """The elevation of object ``obj``'s view ``view`` (:func:`datagen.plan.elevations`)."""
+        if not self.elevations_deg:
+            return self.elevation_deg
+        return float(self.elevations_deg[(view + obj) % len(self.elevations_deg)])
 
 
 class ManifestError(ValueError):

@@ -10,7 +10,7 @@ from dibrpp.io import DataError
 
 from .config import Config, config_dict
 from .layout import DEFAULT_CAMERA, DatasetLayout
-from .plan import azimuths, elevations
+from .plan import azimuths
 from .records import read_record, write_json
 
 GENERATOR_VERSION = "1.1.0"
@@ -39,8 +39,8 @@ def build_manifest(cfg: Config, plan: dict, sources: list) -> dict:
     """The manifest of a dataset made with ``cfg`` and ``plan``; ``sources``: the env map files, if any."""
     camera = replace(DEFAULT_CAMERA, azimuths_deg=tuple(azimuths(cfg)), resolution=cfg.resolution)
     if cfg.elevations:
-        views = elevations(cfg)
-        camera = replace(camera, elevation_deg=float(statistics.median(views)), elevations_deg=tuple(views))
+        camera = replace(camera, elevation_deg=float(statistics.median(cfg.elevations)),
+                         elevations_deg=tuple(float(e) for e in cfg.elevations))
     manifest = dict(generator_version=GENERATOR_VERSION, dataset=cfg.dataset, config=config_dict(cfg),
                     seeds=dict(run=cfg.seed, scheme="numpy SeedSequence([seed, dataset, purpose, index...])"),
                     splits=plan["splits"], env_kind=plan["env_kind"],

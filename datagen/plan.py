@@ -30,12 +30,13 @@ def azimuths(cfg: Config) -> list[float]:
     return [360.0 * k / cfg.views for k in range(cfg.views)]
 
 
-def elevations(cfg: Config) -> list[float]:
-    """The views' camera elevations in degrees: the configured ones taken in turn (views 0, 1, 2, ... at the first,
-    second, third, ...; with three of them and 24 views, each elevation has 8 views 45 degrees apart), or the
-    default camera's for every view."""
+def elevations(cfg: Config, obj: int) -> list[float]:
+    """The camera elevations in degrees of object ``obj``'s views: the configured ones taken in turn, starting one
+    later on each next object (object 0's views 0, 1, 2, ... at the first, second, third, ...; object 1's at the
+    second, third, ...), so that across the objects every azimuth is seen from every elevation; or the default
+    camera's for every view."""
     cycle = cfg.elevations or [DEFAULT_CAMERA.elevation_deg]
-    return [float(cycle[v % len(cycle)]) for v in range(cfg.views)]
+    return [float(cycle[(v + obj) % len(cycle)]) for v in range(cfg.views)]
 
 
 def _split(n: int, rng: np.random.Generator) -> tuple[list[int], list[int]]:

@@ -106,7 +106,7 @@ def task_sample(out: str, cfg: Config, i: int, env: int, info: dict) -> dict:
     build_s = time.perf_counter() - t0
     layout.sample_dir(i, env).mkdir(parents=True, exist_ok=True)
     rendered = 0
-    for v, (az, el) in enumerate(zip(azimuths(cfg), elevations(cfg))):
+    for v, (az, el) in enumerate(zip(azimuths(cfg), elevations(cfg, i))):
         if all(p.exists() for p in _view_paths(layout, i, env, v)):
             continue  # finished before a crash
         _render_view(scene, layout, cfg, i, env, v, az, el)
@@ -169,6 +169,6 @@ def _sample_record(layout: DatasetLayout, cfg: Config, i: int, env: int, info: d
     """sample.json: what the sample is, every file with its size, the render seeds and the timing."""
     files = {p.name: p.stat().st_size for v in range(cfg.views) for p in _view_paths(layout, i, env, v)}
     return dict(object=i, envmap=env, split=info["split"], material=info["material"], views=cfg.views,
-                azimuths_deg=azimuths(cfg), **(dict(elevations_deg=elevations(cfg)) if cfg.elevations else {}),
+                azimuths_deg=azimuths(cfg), **(dict(elevations_deg=elevations(cfg, i)) if cfg.elevations else {}),
                 files=files,
                 render_seeds=[render_seed(cfg, i, env, v) for v in range(cfg.views)], timing=timing)

@@ -263,8 +263,8 @@ def test_optional_settings_enter_the_config_only_when_set():
 
 
 def test_views_at_several_elevations_are_rendered_where_their_cameras_say(tmp_path):
-    """--elevations: the views take the elevations in turn; each view's camera record, the manifest and the
-    rasterised GT mesh agree with Cycles' render."""
+    """--elevations: the views take the elevations in turn, one later on each next object (so that no elevation is
+    tied to an azimuth); each view's camera record, the manifest and the rasterised GT mesh agree with Cycles."""
     from datagen.layout import CameraSetup
     from datagen.plan import elevations
 
@@ -273,26 +273,29 @@ def test_views_at_several_elevations_are_rendered_where_their_cameras_say(tmp_pa
     from dibrpp.conventions import orbit_world_to_camera
     from dibrpp.mesh import Meshes
 
-    cfg = tiny_config(num_objects=1, num_envmaps=1, elevations=[10.0, 45.0])
-    assert elevations(cfg) == [10.0, 45.0, 10.0] and elevations(tiny_config()) == [DEFAULT_CAMERA.elevation_deg] * 3
+    cfg = tiny_config(num_objects=2, num_envmaps=1, elevations=[10.0, 45.0, 30.0])
+    assert elevations(cfg, 0) == [10.0, 45.0, 30.0] and elevations(cfg, 1) == [45.0, 30.0, 10.0]
+    assert elevations(tiny_config(), 5) == [DEFAULT_CAMERA.elevation_deg] * 3
     out = tmp_path / "metallic-elevations"
     generate(cfg, out, workers=1, progress=False, preview=False)
     m = json.loads((out / "manifest.json").read_text())
     cam = CameraSetup.from_manifest(m)
-    assert m["config"]["elevations"] == [10.0, 45.0] and cam.elevations_deg == (10.0, 45.0, 10.0)
-    assert cam.elevation_deg == 10.0 and cam.view_elevation_deg(1) == 45.0  # the median of the views'
-    (sample,) = sorted((out / "samples").iterdir())
-    with np.load(out / "objects" / "obj_0000" / "mesh.npz") as mesh_file:
-        mesh = Meshes(torch.from_numpy(mesh_file["verts"]).float(), torch.from_numpy(mesh_file["faces"]))
-    assert json.loads((sample / "sample.json").read_text())["elevations_deg"] == [10.0, 45.0, 10.0]
-    for v, el in enumerate(cam.elevations_deg):
-        view = json.loads((sample / f"view_{v:02d}.json").read_text())
-        w2c = torch.tensor(view["world_to_camera"])
-        assert view["elevation_deg"] == el
-        assert torch.allclose(w2c, orbit_world_to_camera(torch.tensor(cam.distance), el, view["azimuth_deg"]).float(),
-                              atol=1e-4)
-        ours = raster.rasterize(mesh, Cameras(w2c.float(), torch.tensor([view["fov"]]), view["resolution"])).mask[0] > 0.5
-        alpha = torch.from_numpy(read_exr(sample / f"view_{v:02d}.exr", "RGBA")[..., 3] > 0.5)
-        assert (ours & alpha).sum() / (ours | alpha).sum() >= 0.95, v
+    assert m["config"]["elevations"] == [10.0, 45.0, 30.0] and cam.elevations_deg == (10.0, 45.0, 30.0)
+    assert cam.elevation_deg == 30.0  # their median: the camera predict assumes
+    for sample in sorted((out / "samples").iterdir()):
+        obj = json.loads((sample / "sample.json").read_text())["object"]
+        with np.load(out / "objects" / f"obj_{obj:04d}" / "mesh.npz") as mesh_file:
+            mesh = Meshes(torch.from_numpy(mesh_file["verts"]).float(), torch.from_numpy(mesh_file["faces"]))
+        assert json.loads((sample / "sample.json").read_text())["elevations_deg"] == elevations(cfg, obj)
+        for v in range(cfg.views):
+            view = json.loads((sample / f"view_{v:02d}.json").read_text())
+            w2c = torch.tensor(view["world_to_camera"])
+            assert view["elevation_deg"] == cam.view_elevation_deg(obj, v) == elevations(cfg, obj)[v]
+            expected = orbit_world_to_camera(torch.tensor(cam.distance), view["elevation_deg"], view["azimuth_deg"])
+            assert torch.allclose(w2c, expected.float(), atol=1e-4)
+            ours = raster.rasterize(mesh, Cameras(w2c, torch.tensor([view["fov"]]), view["resolution"])).mask[0] > 0.5
+            alpha = torch.from_numpy(read_exr(sample / f"view_{v:02d}.exr", "RGBA")[..., 3] > 0.5)
+            assert (ours & alpha).sum() / (ours | alpha).sum() >= 0.95, (obj, v)
     with pytest.raises(ValueError, match="strictly between -90 and 90"):
         tiny_config(elevations=[27.0, 90.0])
+
