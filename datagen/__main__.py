@@ -33,8 +33,9 @@ def _preset_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-bounces", type=non_negative_int, metavar="N",
                    help=f"Cycles light bounces ({preset_default('max_bounces')})")
     p.add_argument("--elevations", type=elevation_list, metavar="DEG[,DEG...]",
-                   help="camera elevations in degrees that the views take in turn (default: every view at 27); "
-                        "e.g. 12,27,42: views 0, 3, 6, ... at 12, views 1, 4, ... at 27, views 2, 5, ... at 42")
+                   help="camera elevations in degrees that the views take in turn, starting one later on each next "
+                        "object, so that every azimuth is seen from every elevation (default: every view at 27); "
+                        "e.g. 12,22,32,42 (make data-glossy-elevations)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -298,4 +298,3 @@ def test_views_at_several_elevations_are_rendered_where_their_cameras_say(tmp_pa
             assert (ours & alpha).sum() / (ours | alpha).sum() >= 0.95, (obj, v)
     with pytest.raises(ValueError, match="strictly between -90 and 90"):
         tiny_config(elevations=[27.0, 90.0])
-

@@ -40,7 +40,7 @@ def test_the_cli_reads_a_run_and_says_what_it_measured(tiny_glossy, tmp_path, ca
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "a constant map (the reference" in captured.out and "| 0 %" in captured.out
-    # on another set's test views: the same run on the same kind of set; refused where the image size differs
+    # --dataset names the set whose test views are read: here the run's own, so the same table
     assert diagnose_sky.main(["--runs", str(run), "--view-stride", "1", "--dataset", str(tiny_glossy)]) == 0
     assert captured.out.splitlines()[2:] == capsys.readouterr().out.splitlines()[2:]
 
