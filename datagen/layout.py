@@ -82,7 +82,8 @@ class CameraSetup:
         return entry
 
     def view_elevation_deg(self, obj: int, view: int) -> float:
-        """The elevation of object ``obj``'s view ``view`` (:func:`datagen.plan.elevations`)."""
+        """The elevation of object ``obj``'s view ``view``: the elevations taken in turn, starting one later on each
+        next object (the one place this rule lives; :func:`datagen.plan.elevations` renders by it)."""
         if not self.elevations_deg:
             return self.elevation_deg
         return float(self.elevations_deg[(view + obj) % len(self.elevations_deg)])

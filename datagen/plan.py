@@ -2,6 +2,8 @@
 kinds, each object's material and env maps, and the views' azimuths and elevations."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from .config import OUTDOOR_SHARE, Config
@@ -35,8 +37,8 @@ def elevations(cfg: Config, obj: int) -> list[float]:
     later on each next object (object 0's views 0, 1, 2, ... at the first, second, third, ...; object 1's at the
     second, third, ...), so that across the objects every azimuth is seen from every elevation; or the default
     camera's for every view."""
-    cycle = cfg.elevations or [DEFAULT_CAMERA.elevation_deg]
-    return [float(cycle[(v + obj) % len(cycle)]) for v in range(cfg.views)]
+    camera = replace(DEFAULT_CAMERA, elevations_deg=tuple(cfg.elevations or ()))
+    return [camera.view_elevation_deg(obj, v) for v in range(cfg.views)]
 
 
 def _split(n: int, rng: np.random.Generator) -> tuple[list[int], list[int]]:

@@ -91,12 +91,17 @@ def unit_fraction(text: str) -> float:
     return _checked(text, float, lambda v: 0 <= v <= 1, "a number in [0, 1]")
 
 
+def _numbers(text: str) -> tuple[float, ...]:
+    """Finite numbers separated by commas; () if any is not one."""
+    try:
+        return tuple(_number(x, float) for x in text.split(","))
+    except argparse.ArgumentTypeError:
+        return ()
+
+
 def unit_rgb(text: str) -> tuple[float, float, float]:
     """R,G,B with each value in [0, 1]."""
-    try:
-        values = tuple(_number(x, float) for x in text.split(","))
-    except argparse.ArgumentTypeError:
-        values = ()
+    values = _numbers(text)
     if len(values) != 3 or not all(0 <= v <= 1 for v in values):
         raise argparse.ArgumentTypeError(f"expected R,G,B with each value in [0, 1] (e.g. 1,1,1), got {text!r}")
     return values
@@ -104,10 +109,7 @@ def unit_rgb(text: str) -> tuple[float, float, float]:
 
 def elevation_list(text: str) -> list[float]:
     """DEG[,DEG...]: camera elevations in degrees, each strictly between -90 and 90."""
-    try:
-        values = [_number(x, float) for x in text.split(",")]
-    except argparse.ArgumentTypeError:
-        values = []
+    values = list(_numbers(text))
     if not values or not all(-90 < v < 90 for v in values):
         raise argparse.ArgumentTypeError(f"expected elevations in degrees separated by commas, each strictly between "
                                          f"-90 and 90 (e.g. 12,27,42), got {text!r}")
