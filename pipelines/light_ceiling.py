@@ -80,12 +80,15 @@ def ceiling(dataset: str, split: str = "test", stride: int = 24, steps: int = 10
         b = collate([ds[i]])
         rgba, cams, env = b["image"][:, 0], b["cameras"], b["envmap"]
         obj = int(b["object"][0])
-        material = Material(albedo=ds.texture(obj)[None], **ds.material_params(obj))
+        # the scalars as tensors: as Python floats torch.compile specialises on each object's values and recompiles
+        material = Material(albedo=ds.texture(obj)[None],
+                            **{k: torch.tensor([v]) for k, v in ds.material_params(obj).items()})
         light = fit_view(renderer, ds.mesh(obj), cams, material, rgba, steps)
         scene = metrics.ProbeScene(cams.world_to_camera)
         with torch.no_grad():
             table = light.to_envmap(env.shape[1], env.shape[2]).image
-            scores = {**metrics.light_metrics(light, EnvMap(env), scene), **metrics.envmap_losses(table, env)}
+            scores = {**metrics.light_metrics(light, EnvMap(env), scene), **metrics.envmap_losses(table, env),
+                      **sky_scores(table, env)}
             reference = metrics.constant_light_references(env, scene)
         for k, v in scores.items():
             fitted.setdefault(k, []).append(v)
@@ -94,6 +97,18 @@ def ceiling(dataset: str, split: str = "test", stride: int = 24, steps: int = 10
         if n < figure_views:
             rows.append([display_image(rgba[0, ..., :3]), tonemap_envmap(env[0]), tonemap_envmap(table[0])])
     return {k: torch.cat(v) for k, v in fitted.items()}, {k: torch.cat(v) for k, v in constant.items()}, rows
+
+
+def sky_scores(table: torch.Tensor, env: torch.Tensor) -> dict:
+    """(B,) diagnose_sky's two tests of the light ``table`` where the GT map ``env`` has a sky over a ground (NaN
+    elsewhere): a sky over a ground (metrics.has_sky), and one at least half as much bluer as the GT's."""
+    gt_ratio, gt_bluer = metrics.sky_contrast(env)
+    ratio, bluer = metrics.sky_contrast(table)
+    nan = torch.full_like(ratio, float("nan"))
+    outdoor = metrics.has_sky(gt_ratio, gt_bluer)
+    like_gt = (ratio >= metrics.SKY_BRIGHTER) & (bluer >= 0.5 * gt_bluer)
+    return {"sky": torch.where(outdoor, metrics.has_sky(ratio, bluer).float(), nan),
+            "sky_like_gt": torch.where(outdoor, like_gt.float(), nan)}
 
 
 def summary(fitted: dict, constant: dict) -> list[list[str]]:
@@ -109,6 +124,11 @@ def summary(fitted: dict, constant: dict) -> list[list[str]]:
         rows.append([f"direction_deg, median (≤ 25°), {int(sunny.sum())} sunny views",
                      f"{metrics.median(f):.1f} ({100 * (f <= 25).float().mean():.0f} %)",
                      f"{metrics.median(c):.1f} ({100 * (c <= 25).float().mean():.0f} %)", ""])
+    outdoor = ~fitted["sky"].isnan()
+    if outdoor.any():
+        for k, what in (("sky", "a sky over a ground"), ("sky_like_gt", "… with half its GT's blue")):
+            rows.append([f"{what}, {int(outdoor.sum())} views with one",
+                         f"{100 * fitted[k][outdoor].mean():.0f} %", "0 %", ""])
     return rows
 
 

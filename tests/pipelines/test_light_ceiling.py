@@ -46,3 +46,38 @@ def test_a_folder_that_is_no_dataset_is_refused_by_name(tmp_path, capsys):
         light_ceiling.main(["--dataset", str(tmp_path), "--out", str(tmp_path / "out")])
     assert e.value.code == 2
     assert str(tmp_path) in capsys.readouterr().err
+
+
+def _sky_over_ground(sky_rgb, ground_rgb, height=16, width=32) -> torch.Tensor:
+    """(1, H, W, 3) a map of one colour above the horizon and another below."""
+    env = torch.empty(1, height, width, 3)
+    env[:, : height // 2] = torch.tensor(sky_rgb)
+    env[:, height // 2:] = torch.tensor(ground_rgb)
+    return env
+
+
+def test_the_sky_tests_pass_a_sky_as_blue_as_the_gt_and_fail_a_grey_one():
+    """Scored as diagnose_sky scores a prediction: the GT's own sky passes both tests; a grey sky as bright passes
+    neither (no bluer than its ground); one with a third of the GT's blue is a sky but not half the GT's; a map
+    without a sky (a room lit from below) is left out (NaN)."""
+    gt = _sky_over_ground([0.3, 0.5, 1.0], [0.3, 0.25, 0.2])
+    grey = _sky_over_ground([0.6, 0.6, 0.6], [0.25, 0.25, 0.25])
+    _, gt_bluer = metrics.sky_contrast(gt)
+    third = _sky_over_ground([0.5, 0.55, 0.62], [0.3, 0.25, 0.2])
+    _, third_bluer = metrics.sky_contrast(third)
+    assert metrics.SKY_BLUER <= float(third_bluer) < 0.5 * float(gt_bluer)
+    for table, sky, like_gt in ((gt, 1.0, 1.0), (grey, 0.0, 0.0), (third, 1.0, 0.0)):
+        scores = light_ceiling.sky_scores(table, gt)
+        assert float(scores["sky"]) == sky and float(scores["sky_like_gt"]) == like_gt
+    room = _sky_over_ground([0.2, 0.2, 0.2], [1.0, 0.8, 0.6])
+    assert light_ceiling.sky_scores(gt, room)["sky"].isnan().all()
+
+
+def test_the_table_has_the_sky_rows_over_the_views_with_one():
+    fitted = {k: torch.tensor([0.1, 0.2, 0.3]) for k in light_ceiling.METRICS}
+    constant = {k: torch.tensor([0.2, 0.2, 0.2]) for k in light_ceiling.METRICS}
+    fitted["direction_deg"] = constant["direction_deg"] = torch.full((3,), float("nan"))
+    fitted["sky"], fitted["sky_like_gt"] = torch.tensor([1.0, 0.0, float("nan")]), torch.tensor([0.0, 0.0, float("nan")])
+    rows = {r[0]: r for r in light_ceiling.summary(fitted, constant)}
+    assert rows["a sky over a ground, 2 views with one"][1:3] == ["50 %", "0 %"]
+    assert rows["… with half its GT's blue, 2 views with one"][1] == "0 %"

@@ -292,3 +292,60 @@ def test_a_global_grid_of_4_keeps_the_fully_connected_layer_at_larger_inputs_and
     assert torch.isfinite(pred.meshes().verts).all()
     sides = {s: ModelConfig(image_size=s, global_grid=4).grid_side() for s in (32, 64, 96, 128, 256)}
     assert sides == {32: 2, 64: 4, 96: 3, 128: 4, 256: 4}
+
+
+def test_the_sky_and_ground_colours_are_read_off_the_cue():
+    """A cue (probe frame = world frame) of blue cells above the horizon and brown ones below: the sky's log colour
+    over the ground's is the blue cells' over the brown ones' (the soft horizon mixes the cells next to it, within
+    15 %). Untrained, the code's shift is zero."""
+    from pipelines.model.light_probe import ProbeLightHead
+
+    head = ProbeLightHead("sg", 8, 16, 32, 1000.0, 10.0, sky_ground=True)
+    z = head.cell_dirs[0, 2]
+    blue, brown = torch.tensor([0.1, 0.2, 0.6]), torch.tensor([0.4, 0.25, 0.1])
+    grid = torch.zeros(1, 8, 16, 32)
+    grid[0, :3] = torch.where(z > 0, blue.view(3, 1, 1), brown.view(3, 1, 1))
+    grid[0, 3] = 1.0
+    colour = head.hemisphere_colour(grid, torch.zeros(1, 512), torch.eye(3)[None])[0]
+    sky_minus_ground = colour[:, 0, 0] - colour[:, -1, 0]  # the top row against the bottom row
+    chroma = lambda c: c.log() - c.log().mean()  # noqa: E731
+    expected = chroma(blue) - chroma(brown)
+    assert torch.allclose(sky_minus_ground, expected, atol=0.15 * expected.abs().max())
+
+
+def test_the_unlit_texture_divides_a_metals_mirrored_sky_colour_out_and_keeps_paints():
+    """projected-unlit: a metal's texel sees the input's colour over the colour of the sky (mirrored upward) or of the
+    ground (downward) that the probe head reads off the cue; paint's (metallic 0) sees the input's colour as the
+    projected texture does. Same weights, one sphere seen in one view."""
+    torch.manual_seed(0)
+    config = dict(image_size=32, shading="sg", lobes=4, light_head="probe", light_colour="sky-ground")
+    plain = Encoder(ModelConfig(texture="projected", **config))
+    unlit = Encoder(ModelConfig(texture="projected-unlit", **config))
+    unlit.load_state_dict(plain.state_dict())
+    with pytest.raises(ValueError, match="light_colour 'sky-ground'"):
+        Encoder(ModelConfig(image_size=32, texture="projected-unlit", light_colour="white"))
+    cams = Cameras.orbit(40.0, 20.0, 30.0, 40.0, 32)
+    rgba = torch.rand(1, 32, 32, 4)
+    rgba[..., 3] = 1.0
+    images = encoder_input(rgba)
+    texels = plain._texel_view(plain.template_dirs * 12.0, cams)
+    sky = torch.tensor([[-0.4, 0.0, 0.4]])  # log colour: a blue sky over an orange ground
+    for metallic in (0.0, 1.0):
+        colour = unlit._unlit_colour({"cue_sky_colour": sky}, texels, torch.tensor([metallic]))
+        assert colour.shape == (1, 3, 32, 64)
+        if metallic == 0.0:
+            assert torch.allclose(colour, torch.ones_like(colour))
+        else:
+            up = (texels.mirror[..., 2] > 0.5).view(1, 32, 64)  # texels that mirror the sky well above the horizon
+            down = (texels.mirror[..., 2] < -0.5).view(1, 32, 64)
+            assert up.any() and down.any()
+            assert torch.allclose(colour[:, :, up[0]], sky.exp().view(1, 3, 1), rtol=0.02)
+            assert torch.allclose(colour[:, :, down[0]], (-sky).exp().view(1, 3, 1), rtol=0.02)
+    stem = plain.stem(images)
+    seen = plain._projected(stem, images, texels)
+    assert torch.allclose(seen, unlit._projected(stem, images, texels, torch.ones(1, 3, 32, 64)), atol=1e-5)
+    divided = unlit._projected(stem, images, texels, torch.full((1, 3, 32, 64), 2.0))
+    covered = (seen[:, 3:4] > 0.5).expand(1, 3, -1, -1)
+    assert (divided[:, :3][covered] < seen[:, :3][covered] + 1e-6).all()
+    pred = unlit(images, cams)  # the whole forward: the head hands its cue's sky colour to the texture
+    assert pred.light_params["cue_sky_colour"].shape == (1, 3) and pred.texture.shape == (1, 32, 64, 3)
