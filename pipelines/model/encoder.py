@@ -31,10 +31,8 @@ from dibrpp.brdf import MIN_ALPHA
 from dibrpp.camera import Cameras
 from dibrpp.mesh import Meshes, icosphere, vertex_normals
 
-from .light_probe import (SKY_GROUND_SOFTNESS, ProbeLightHead, facing_mirror_cue, mirror_directions, pixel_samples,
-                          probe_grid, world_to_probe)
-from .model_input import (MAX_LOG_RADIANCE, clip_input, decode_premultiplied, encode_colour, input_grid,
-                          input_radiance)
+from .light_probe import ProbeLightHead, facing_mirror_cue, pixel_samples, probe_grid, world_to_probe
+from .model_input import MAX_LOG_RADIANCE, clip_input, input_grid, input_radiance
 from .pixel_normals import PixelNormalNet
 from .prediction import LIGHT_KINDS, Prediction, white_balance
 from .template import mirror_index, texel_barycentrics
@@ -43,7 +41,7 @@ MODEL_VERSION = 9  # bump when parameters or their meaning change (training.earl
 MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 
 # the allowed values of the model's string options
-CHOICES = {"texture": ("projected", "projected-unlit", "global"), "light_colour": ("white", "free", "sky-ground"),
+CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
            "light_head": ("global", "probe"),
            "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
 
@@ -60,9 +58,7 @@ class ModelConfig:
     symmetric: bool = True  # mirror symmetry about the XZ plane (y -> -y)
     texture_height: int = 32
     texture_width: int = 64
-    # projected: looks the input image up | projected-unlit: the same, a metal's texel with the colour of the sky or
-    # ground it mirrors (as the probe head reads them off the cue) divided out | global: decoded from the global code
-    texture: str = "projected"
+    texture: str = "projected"  # projected: looks the input image up | global: decoded from the global code
     # white: white-balanced light | free: any colour | sky-ground: white-balanced, and the probe head's sky tinted by
     # a colour above the horizon and one below (ProbeLightHead.hemisphere_colour; as white with the global head)
     light_colour: str = "white"
@@ -94,9 +90,6 @@ class ModelConfig:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
         if self.light_head == "probe" and self.shading == "sh":
             raise ValueError("the probe light head predicts SG lobes or env maps, not SH")
-        if self.texture == "projected-unlit" and (self.light_head != "probe" or self.light_colour != "sky-ground"):
-            raise ValueError("texture 'projected-unlit' divides the sky's and the ground's colours the probe head reads "
-                             "out of a metal's texels; it needs light_head 'probe' and light_colour 'sky-ground'")
         if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
                              "light_head 'probe'")
@@ -138,11 +131,9 @@ def _inverse_softplus(value: torch.Tensor) -> torch.Tensor:
 @dataclass
 class TexelView:
     """The texels of the predicted surface seen from the input camera: how squarely each faces the camera (B, T;
-    0: away), where it projects (B, Ht, Wt, 2; grid_sample coordinates), and the world direction a mirror there
-    shows the camera (B, T, 3)."""
+    0: away), and where it projects (B, Ht, Wt, 2; grid_sample coordinates)."""
     facing: torch.Tensor
     grid: torch.Tensor
-    mirror: torch.Tensor
 
 
 def _down_block(cin, cout):
@@ -178,7 +169,7 @@ class Encoder(nn.Module):
             nn.Upsample(scale_factor=2), nn.Conv2d(4 * w, 2 * w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
             nn.Upsample(scale_factor=2), nn.Conv2d(2 * w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
             nn.Upsample(scale_factor=2), nn.Conv2d(w, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True))
-        fused = w + (4 + w + 1 if c.texture != "global" else 0)
+        fused = w + (4 + w + 1 if c.texture == "projected" else 0)
         self.tex_out = nn.Sequential(nn.Conv2d(fused, w, 3, 1, 1), nn.LeakyReLU(0.2, inplace=True),
                                      nn.Conv2d(w, 3, 3, 1, 1))
         self.material_head = nn.Linear(512, 3)
@@ -236,15 +227,14 @@ class Encoder(nn.Module):
             offsets = 0.5 * (offsets + offsets[:, self.mirror] * offsets.new_tensor([1.0, -1.0, 1.0]))
         return self.template_dirs * scale.unsqueeze(1) + offsets
 
-    def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor, texels: "TexelView | None",
-                 light_colour: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Linear albedo (B, Ht, Wt, 3) in (0, 1), and the texels' facing of the input camera (projected only);
-        ``light_colour`` (B, 3, Ht, Wt): divided out of the colour the texels see (projected-unlit)."""
+    def _texture(self, f: torch.Tensor, stem: torch.Tensor, images: torch.Tensor,
+                 texels: "TexelView | None") -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Linear albedo (B, Ht, Wt, 3) in (0, 1), and the texels' facing of the input camera (projected only)."""
         c = self.config
         b, th, tw = f.shape[0], c.texture_height // 8, c.texture_width // 8
         feats, facing = [self.tex_dec(self.tex_fc(f).view(b, -1, th, tw))], None
-        if c.texture != "global":
-            feats.append(self._projected(stem, images, texels, light_colour))
+        if c.texture == "projected":
+            feats.append(self._projected(stem, images, texels))
             facing = feats[-1][:, -1]
         return torch.sigmoid(self.tex_out(torch.cat(feats, 1))).permute(0, 2, 3, 1), facing
 
@@ -261,20 +251,15 @@ class Encoder(nn.Module):
         to_cam = F.normalize(cameras.centers.to(pos).unsqueeze(1) - pos, dim=-1)
         facing = (nrm * to_cam).sum(-1).clamp_min(0)
         grid = input_grid(pos, cameras).view(b, c.texture_height, c.texture_width, 2)
-        return TexelView(facing, grid, mirror_directions(nrm, to_cam))
+        return TexelView(facing, grid)
 
-    def _projected(self, stem, images, texels: "TexelView", light_colour: torch.Tensor | None = None) -> torch.Tensor:
-        """What the input view shows at each texel of the predicted surface: colour (``light_colour`` divided out
-        of it, if given) and alpha, stem features, and how squarely the texel faces the camera (0 where it faces
-        away)."""
+    def _projected(self, stem, images, texels: "TexelView") -> torch.Tensor:
+        """What the input view shows at each texel of the predicted surface: colour and alpha, stem
+        features, and how squarely the texel faces the camera (0 where it faces away)."""
         c = self.config
         b = images.shape[0]
-        colour = F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros")
-        if light_colour is not None:
-            alpha = colour[:, 3:]
-            unlit = decode_premultiplied(colour[:, :3], alpha) / light_colour
-            colour = torch.cat([encode_colour(unlit) * alpha, alpha], 1)
-        seen = torch.cat([colour, F.grid_sample(stem, texels.grid, align_corners=False, padding_mode="zeros")], 1)
+        seen = torch.cat([F.grid_sample(images, texels.grid, align_corners=False, padding_mode="zeros"),
+                          F.grid_sample(stem, texels.grid, align_corners=False, padding_mode="zeros")], 1)
         facing = texels.facing.view(b, 1, c.texture_height, c.texture_width)
         return torch.cat([seen * (facing > 0), facing], 1)
 
@@ -318,7 +303,8 @@ class Encoder(nn.Module):
         stem = self.stem(images)
         f = self.fc(self.backbone(stem))
         verts = self._shape(self.shape_head(f))
-        texels = self._texel_view(verts.detach(), cameras) if c.texture != "global" else None
+        texels = self._texel_view(verts.detach(), cameras) if c.texture == "projected" else None
+        texture, facing = self._texture(f, stem, images, texels)
         roughness, specular, metallic = self.material_parameters(f)
         kind = LIGHT_KINDS[c.shading]
         pixel_normals = None
@@ -334,22 +320,7 @@ class Encoder(nn.Module):
             light = self._light_from_code(f)
         if c.light_colour != "free":
             light = white_balance(light, kind)
-        light_colour = self._unlit_colour(light, texels, metallic) if c.texture == "projected-unlit" else None
-        texture, facing = self._texture(f, stem, images, texels, light_colour)
         return Prediction(verts, texture, roughness, specular, metallic, light, c, self.template(), facing, pixel_normals)
-
-    def _unlit_colour(self, light: dict, texels: "TexelView", metallic: torch.Tensor) -> torch.Tensor:
-        """(B, 3, Ht, Wt) the colour of the sky or the ground each texel mirrors to the input camera, as the mirror cue
-        shows them (ProbeLightHead.cue_sky_colour), to the power of how metallic the surface is: a metal shows what
-        it mirrors tinted by its albedo, so that tint is the light's, not the paint's; paint keeps what it shows.
-        Read off the input, not the predicted light: a light that starts grey would leave the texture its colour,
-        and the texture holding it would keep the light grey. Held: an input, not a way to train the light."""
-        c = self.config
-        b = metallic.shape[0]
-        above = torch.sigmoid(texels.mirror[..., 2] / SKY_GROUND_SOFTNESS).unsqueeze(-1)  # (B, T, 1): world z is up
-        log_colour = (2 * above - 1) * light["cue_sky_colour"].detach().unsqueeze(1)  # the sky's, the ground's its negative
-        colour = torch.exp(log_colour * metallic.detach().view(-1, 1, 1))
-        return colour.permute(0, 2, 1).reshape(b, 3, c.texture_height, c.texture_width)
 
     def _light_from_code(self, f: torch.Tensor) -> dict:
         """The light regressed from the global code (the paper's head)."""

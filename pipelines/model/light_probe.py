@@ -264,28 +264,20 @@ class ProbeLightHead(nn.Module):
             log_map = log_map + self.hemisphere_colour(grid, code, probe_to_world)
         return torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))
 
-    def above_horizon(self, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, 1, H, W) how far each cell is above the world's horizon (a soft step: 1 above, 0 below)."""
+    def hemisphere_colour(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) log colour (mean 0 over RGB) of the sky above the world's horizon and of the ground below it.
+        Read off the mirror cue: the ratio of its colour above to its colour below, which the paint's colour, common
+        to both, divides out (half of it to each side), shifted by what the global code adds."""
         up = probe_to_world[:, 2]  # the world's up in the probe frame (B, 3)
-        return torch.sigmoid(torch.einsum("bc,chw->bhw", up, self.cell_dirs[0]) / SKY_GROUND_SOFTNESS).unsqueeze(1)
-
-    def cue_sky_colour(self, grid: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, 3) the sky's log colour (mean 0 over RGB; the ground's is its negative) as the mirror cue shows it: half
-        the ratio of its colour above the world's horizon to its colour below, which the paint's colour, common to
-        both, divides out."""
-        above, seen = self.above_horizon(probe_to_world), grid[:, 3:4]
+        above = torch.sigmoid(torch.einsum("bc,chw->bhw", up, self.cell_dirs[0]) / SKY_GROUND_SOFTNESS).unsqueeze(1)
+        seen = grid[:, 3:4]
 
         def log_chroma(weight: torch.Tensor) -> torch.Tensor:  # (B, 3) the cue's mean colour under weight, as log chroma
             mean = (grid[:, :3] * seen * weight).sum((2, 3)) / (seen * weight).sum((2, 3)).clamp_min(1e-6)
             log = torch.log(mean + LOG_EPS)
             return log - log.mean(-1, keepdim=True)
 
-        return 0.5 * (log_chroma(above) - log_chroma(1 - above))
-
-    def hemisphere_colour(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) log colour (mean 0 over RGB) of the sky above the world's horizon and of the ground below it:
-        the mirror cue's (:meth:`cue_sky_colour`), shifted by what the global code adds."""
-        above, half = self.above_horizon(probe_to_world), self.cue_sky_colour(grid, probe_to_world)
+        half = 0.5 * (log_chroma(above) - log_chroma(1 - above))
         shift = self.sky_ground(code).view(-1, 2, 3)
         shift = shift - shift.mean(-1, keepdim=True)
         sky, ground = (half + shift[:, 0]), (-half + shift[:, 1])
@@ -320,10 +312,7 @@ class ProbeLightHead(nn.Module):
         h, residual = self.features(grid, code)
         sky = self.sky(grid, residual, code, probe_to_world)
         sun = self.place_sun(sun_grid, residual, h, code, probe_to_world, metal, sky.mean(1))
-        light = self.env_light(sky, *sun) if self.kind == "env" else self.sg_light(sky, *sun, sun_grid, metal)
-        if self.sky_ground is not None:  # for the unlit texture (Encoder._unlit_colour)
-            light["cue_sky_colour"] = self.cue_sky_colour(grid, probe_to_world)
-        return light
+        return self.env_light(sky, *sun) if self.kind == "env" else self.sg_light(sky, *sun, sun_grid, metal)
 
     def sg_light(self, sky: torch.Tensor, axis: torch.Tensor, log_p: torch.Tensor, sharpness: torch.Tensor,
                  amplitude: torch.Tensor, sun_grid: torch.Tensor, metal: torch.Tensor) -> dict:

@@ -64,9 +64,8 @@ class TrainConfig:
     lobes: int = _opt(32, "SG lobes of the predicted light", minimum=2)
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     predict_metallic: bool | None = _opt(None, "predict the metallic parameter (unset: where the dataset has metals)")
-    texture: str = _opt("projected", "albedo looked up from the input view, the same with the colour of the sky or "
-                        "ground a metal's texel mirrors (read off the input) divided out, or decoded from the global code",
-                        ("projected", "projected-unlit", "global"))
+    texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
+                        ("projected", "global"))
     light_colour: str = _opt("sky-ground", "white-balanced light whose sky (the probe head's) is tinted by a colour above "
                              "the horizon and one below, white-balanced light alone, or light of any colour",
                              ("sky-ground", "white", "free"))

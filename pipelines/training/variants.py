@@ -41,9 +41,6 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third",
                            {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    "unlit-texture": Variant("the albedo looked up in the input with the colour of the sky or the ground each texel "
-                             "mirrors (the probe head's read of the cue) divided out, to the power of how metallic it is",
-                             {"texture": "projected-unlit"}, runs=(("metallic", 0), ("glossy", 0))),
     # the variant whose numbers the README cites
     "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "

@@ -597,6 +597,8 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
         load_config(run("albedo-variation", w_albedo_variation=1.0))
     with pytest.raises(DataError, match=r"light_colour='two-colour'.*git checkout 140a12d"):
         load_config(run("two-colour", light_colour="two-colour"))
+    with pytest.raises(DataError, match=r"texture='projected-unlit'.*git checkout 2527105"):
+        load_config(run("unlit", texture="projected-unlit"))
     assert load_config(run("default-2", own_light_material="learnt")) == TrainConfig(iterations=6000)
     with pytest.raises(DataError, match=r"own_light_material='held'.*git checkout de11f3d"):
         load_config(run("own-light-held", own_light_material="held"))
