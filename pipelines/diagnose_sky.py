@@ -54,7 +54,7 @@ def diagnose(run: Path, stride: int = 3, dataset: str | None = None) -> dict:
             "brighter_share": float((pred[:, 0] >= metrics.SKY_BRIGHTER).float().mean()),
             "bluer_share": float((pred[:, 1] >= metrics.SKY_BLUER).float().mean()),
             "sky_share": float(metrics.has_sky(pred[:, 0], pred[:, 1]).float().mean()),
-            "like_gt_share": float(((pred[:, 0] >= metrics.SKY_BRIGHTER) & (pred[:, 1] >= 0.5 * gt[:, 1])).float().mean())}
+            "like_gt_share": float(metrics.has_sky_like_gt(pred[:, 0], pred[:, 1], gt[:, 1]).float().mean())}
 
 
 HEADER = ["run", "test views with a sky", "sky / ground luminance, median (GT)", "sky − ground blue, median (GT)",

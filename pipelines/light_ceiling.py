@@ -106,9 +106,8 @@ def sky_scores(table: torch.Tensor, env: torch.Tensor) -> dict:
     ratio, bluer = metrics.sky_contrast(table)
     nan = torch.full_like(ratio, float("nan"))
     outdoor = metrics.has_sky(gt_ratio, gt_bluer)
-    like_gt = (ratio >= metrics.SKY_BRIGHTER) & (bluer >= 0.5 * gt_bluer)
     return {"sky": torch.where(outdoor, metrics.has_sky(ratio, bluer).float(), nan),
-            "sky_like_gt": torch.where(outdoor, like_gt.float(), nan)}
+            "sky_like_gt": torch.where(outdoor, metrics.has_sky_like_gt(ratio, bluer, gt_bluer).float(), nan)}
 
 
 def summary(fitted: dict, constant: dict) -> list[list[str]]:

@@ -266,6 +266,12 @@ def has_sky(ratio: torch.Tensor, bluer: torch.Tensor) -> torch.Tensor:
     return (ratio >= SKY_BRIGHTER) & (bluer >= SKY_BLUER)
 
 
+def has_sky_like_gt(ratio: torch.Tensor, bluer: torch.Tensor, gt_bluer: torch.Tensor) -> torch.Tensor:
+    """(B,) the light target's test: a sky as much brighter than its ground as :func:`has_sky` asks, and at least half
+    as much bluer as the GT's sky (``gt_bluer``, :func:`sky_contrast`'s) is than its ground."""
+    return (ratio >= SKY_BRIGHTER) & (bluer >= 0.5 * gt_bluer)
+
+
 # A map has a dominant light (a sun, or a window or lamp in a room) when one cell of the 16 x 32 grid sends
 # at least this fraction of its power (measured on the default maps: skies with a clear sun 0.25-0.82,
 # hazy skies 0.01-0.04, rooms 0.05-0.30).
