@@ -146,6 +146,10 @@ class MultiViewDataset(torch.utils.data.Dataset):
         """(S, S, 4) RGBA image of one view, linear or sRGB as this dataset was opened."""
         return self._image(self.layout.view_image(obj, env, view, srgb=self.image == "srgb"), "RGBA")
 
+    def view_albedo(self, obj: int, env: int, view: int) -> torch.Tensor:
+        """(S, S, 3) linear base colour x coverage of one view."""
+        return self._image(self.layout.view_albedo(obj, env, view), "RGB")
+
     def envmap(self, env: int) -> torch.Tensor:
         return self._cached(("env", env), lambda: torch.from_numpy(
             read_exr(self.layout.envmap(env), "RGB")))
@@ -195,7 +199,7 @@ class MultiViewDataset(torch.utils.data.Dataset):
         imgs, albs, w2cs, fovs = [], [], [], []
         for v in views:
             imgs.append(self.view_image(obj, env, v))
-            albs.append(self._image(self.layout.view_albedo(obj, env, v), "RGB"))
+            albs.append(self.view_albedo(obj, env, v))
             m, fov = self.camera(obj, env, v)
             w2cs.append(m)
             fovs.append(fov)

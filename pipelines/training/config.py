@@ -86,8 +86,8 @@ class TrainConfig:
                               ("surface", "pixels"))
     supervision: str = _opt("none", "diagnostic: ground truth the run is told: the GT env map (light-map), its rough-metal "
                             "probe (light-probe), each sunny map's sun direction for the probe head's sun (sun), or "
-                            "the GT mesh's normals in the input view (shape)",
-                            ("none", "light-map", "light-probe", "sun", "shape"))
+                            "the GT mesh's normals in the input view (shape), or its albedo there (albedo)",
+                            ("none", "light-map", "light-probe", "sun", "shape", "albedo"))
     # device
     device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
                        ("cpu", "cuda"))
@@ -117,7 +117,7 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
             if maximum is not None and value > maximum:
                 raise ConfigError(f"{f.name} must be <= {maximum:g} (more does not fit in memory), got {value!r}")
-        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape"):
+        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape", "albedo"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")
         if self.probe_normals == "pixels" and not self.has_probe_head():

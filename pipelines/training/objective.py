@@ -137,6 +137,11 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         own = renderer.render_normals(pred.meshes(), views).image
         terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))
         weights["shape_supervision"] = 1.0
+    elif config.supervision == "albedo":  # each prediction's albedo in its own input view against the GT's there
+        own = renderer.render_albedo(pred.meshes(), views, pred.material()).rgb
+        terms["albedo_supervision"] = foreground_l1(image_space(own), image_space(batch["albedo"].reshape(own.shape)),
+                                                    flat[..., 3])
+        weights["albedo_supervision"] = 1.0
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)

@@ -59,6 +59,9 @@ VARIANTS: dict[str, Variant] = {
     "shape-supervised": Variant("the predicted normals supervised by the GT mesh's in the input view: what one view can "
                                 "predict of the normals when told them",
                                 {"supervision": "shape"}, kind="diagnostic", runs=(("metallic", 0),)),
+    "albedo-supervised": Variant("the predicted albedo supervised by the GT's in the input view: whether the light "
+                                 "takes the sky's colour when the albedo cannot keep it",
+                                 {"supervision": "albedo"}, kind="diagnostic", runs=(("metallic", 0),)),
 }
 
 # the fields some variant sets, and global_grid (its 0 only undoes a default): a run that changes them by hand is
