@@ -43,8 +43,8 @@ from .training.runs import checkpoint_digest, find_runs, load_config
 
 # what a result JSON holds; a cached result of an older format is evaluated again (3: the whole-image L1, eq. 9
 # on LDR maps, the dataset's kind and its split's size; 4: the variant's registry kind; 5: the albedo's sky blue;
-# 6: the material's levels and scale)
-RESULT_FORMAT = 6
+# 6: the material's levels and scale; 7: the albedo's sky blue, up over sideways)
+RESULT_FORMAT = 7
 LOCK_FILE = ".evaluate.lock"  # in --out: one evaluate writes a results folder at a time
 
 

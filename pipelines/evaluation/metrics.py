@@ -347,19 +347,26 @@ def normal_errors(pred_meshes, gt_meshes: list, cameras, rgba: torch.Tensor, sun
                         for e, t, b, s in zip(angle, turn, both, at_sun)])
 
 
-UP_FACING_COS = 0.5  # a surface faces up (mirrors the sky) where its normal is within 60 degrees of up
+UP_FACING_COS = 0.5  # a surface faces up (mirrors the sky) where its normal is within 60 degrees of up,
+# and sideways (mirrors the horizon and the ground) where it is within 30 degrees of horizontal
 
 
 def albedo_sky_blue(albedo: torch.Tensor, gt_albedo: torch.Tensor, gt_normals: torch.Tensor,
                     gt_alpha: torch.Tensor) -> torch.Tensor:
-    """(B,) how much bluer the predicted albedo is than the GT's where the GT surface faces up (and mirrors the sky):
-    the mean over those pixels of the blue chromaticity b / (r + g + b), predicted minus GT. Albedos (B, H, W, 3)
-    rendered in the input view, GT world normals (B, H, W, 3) and coverage (B, H, W); NaN where no pixel faces up.
-    0 where the albedo holds no sky; a hood that keeps the sky's reflection in its albedo scores above 0."""
-    up = (gt_normals[..., 2] > UP_FACING_COS) & (gt_alpha > 0.5)
+    """(B,) how much bluer the predicted albedo is where the GT surface faces up (and mirrors the sky) than where it
+    faces sideways (and mirrors the ground), beyond the GT albedo's own difference: the blue chromaticity
+    b / (r + g + b), predicted minus GT, averaged over each set of pixels, up minus sideways. Albedos (B, H, W, 3)
+    rendered in the input view, GT world normals (B, H, W, 3) and coverage (B, H, W); NaN where either set is empty.
+    0 where the albedo's colour does not follow the mirrored direction; a model that paints the sky's and the
+    ground's reflections into the albedo scores above 0. A tint of the whole albedo (which white-balanced light
+    leaves to it) cancels."""
+    covered, up_z = gt_alpha > 0.5, gt_normals[..., 2]
+    up, side = covered & (up_z > UP_FACING_COS), covered & (up_z.abs() < UP_FACING_COS)
     blue = lambda a: a[..., 2] / a.sum(-1).clamp_min(1e-4)  # noqa: E731
-    excess = (blue(albedo) - blue(gt_albedo)) * up
-    return excess.sum((1, 2)) / up.sum((1, 2)).clamp_min(1) + torch.where(up.any(2).any(1), 0.0, float("nan"))
+    excess = blue(albedo) - blue(gt_albedo)
+    mean_over = lambda m: (excess * m).sum((1, 2)) / m.sum((1, 2)).clamp_min(1)  # noqa: E731
+    empty = ~(up.flatten(1).any(1) & side.flatten(1).any(1))
+    return torch.where(empty, float("nan"), mean_over(up) - mean_over(side))
 
 
 def albedo_scale(albedo: torch.Tensor, gt_albedo: torch.Tensor, covered: torch.Tensor) -> torch.Tensor:

@@ -240,7 +240,7 @@ def test_the_median_of_an_even_count_is_the_mean_of_the_middle_two_and_nan_is_ig
     assert summary["median_ci"][0] <= float(median(errors)) <= summary["median_ci"][1]
 
 
-def test_the_albedo_s_sky_blue_is_read_where_the_surface_faces_up_only():
+def test_the_albedo_s_sky_blue_is_its_blue_where_it_faces_up_over_where_it_faces_sideways_beyond_the_gt_s():
     from pipelines.evaluation.metrics import albedo_sky_blue
 
     gt = torch.full((1, 2, 2, 3), 0.5)  # a grey albedo
@@ -248,9 +248,15 @@ def test_the_albedo_s_sky_blue_is_read_where_the_surface_faces_up_only():
     alpha = torch.ones(1, 2, 2)
     pred = gt.clone()
     pred[0, 0, 0] = torch.tensor([0.2, 0.3, 0.5])  # the sky's blue kept on one up-facing pixel
-    pred[0, 1] = torch.tensor([0.1, 0.1, 0.8])  # bluer still, but on the side and the bottom: not the sky's
+    pred[0, 1, 1] = torch.tensor([0.1, 0.1, 0.8])  # bluer still, but facing down: neither set
     assert float(albedo_sky_blue(pred, gt, normals, alpha)[0]) == pytest.approx((0.5 - 1 / 3) / 2)
-    assert float(albedo_sky_blue(gt, gt, normals, alpha)[0]) == pytest.approx(0.0)
+    pred[0, 1, 0] = torch.tensor([0.5, 0.3, 0.2])  # the ground's brown kept on the side: counts too
+    assert float(albedo_sky_blue(pred, gt, normals, alpha)[0]) == pytest.approx((0.5 - 1 / 3) / 2 + (1 / 3 - 0.2))
+    tinted = gt * torch.tensor([0.8, 0.9, 1.2])  # the whole albedo bluer (a tint the light leaves to it): no sky
+    assert float(albedo_sky_blue(tinted, gt, normals, alpha)[0]) == pytest.approx(0.0, abs=1e-6)
+    two_tone = gt.clone()
+    two_tone[0, 0] = torch.tensor([0.1, 0.2, 0.7])  # the GT's own blue roof, predicted as it is: no sky
+    assert float(albedo_sky_blue(two_tone, two_tone, normals, alpha)[0]) == pytest.approx(0.0)
     assert albedo_sky_blue(gt, gt, -normals.abs(), alpha)[0].isnan()  # nothing faces up
 
 
