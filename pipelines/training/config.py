@@ -85,9 +85,8 @@ class TrainConfig:
                               "(pixels: 3D supervision the paper does not use; training reads the surface's)",
                               ("surface", "pixels"))
     supervision: str = _opt("none", "diagnostic: ground truth the run is told: the GT env map (light-map), its rough-metal "
-                            "probe (light-probe), each sunny map's sun direction for the probe head's sun (sun), or "
-                            "the GT mesh's normals in the input view (shape), or its albedo there (albedo)",
-                            ("none", "light-map", "light-probe", "sun", "shape", "albedo"))
+                            "probe (light-probe), or the GT albedo in the input view (albedo)",
+                            ("none", "light-map", "light-probe", "albedo"))
     # device
     device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
                        ("cpu", "cuda"))
@@ -117,15 +116,12 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
             if maximum is not None and value > maximum:
                 raise ConfigError(f"{f.name} must be <= {maximum:g} (more does not fit in memory), got {value!r}")
-        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "shape", "albedo"):
+        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "albedo"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")
         if self.probe_normals == "pixels" and not self.has_probe_head():
             raise ConfigError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with the probe "
                               "light head (--light-head probe) and --shading sg, sh-sg or mc")
-        if self.supervision == "sun" and not (self.shading in SG_LIGHT and self.has_probe_head()):
-            raise ConfigError("supervision 'sun' teaches the probe head's SG sun lobe; use it with --shading sg or "
-                              "sh-sg and the probe light head")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self
@@ -142,10 +138,6 @@ class TrainConfig:
         under the probe head's sun, whose sky MC shades (with one render the loss pays for the render's own noise,
         which training lowers by blurring the light)."""
         return self.shading == "mc" and self.has_probe_head()
-
-    def reads_gt_normals(self) -> bool:
-        """Whether training reads the GT mesh's normals in every view (a diagnostic's loss, or the pixel normals' fit)."""
-        return self.supervision == "shape" or self.probe_normals == "pixels"
 
     @classmethod
     def from_dict(cls, values: dict, preset: str = "cpu") -> "TrainConfig":

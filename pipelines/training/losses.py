@@ -12,9 +12,9 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from dibrpp.conventions import equirect_directions, orbit_world_to_camera
+from dibrpp.conventions import orbit_world_to_camera
 
-from ..evaluation.metrics import SUN_FRACTION, ProbeScene, dominant_direction, si_rmse
+from ..evaluation.metrics import ProbeScene, si_rmse
 
 
 def hdr_srgb(rgb_linear: torch.Tensor) -> torch.Tensor:
@@ -84,32 +84,6 @@ def _probe_scene() -> ProbeScene:
     return ProbeScene(orbit_world_to_camera(torch.tensor(3.0), 20.0, torch.tensor([0.0, 90.0, 180.0, 270.0])), resolution=16)
 
 
-SUN_TARGET_KAPPA = 30.0  # von Mises-Fisher concentration of a sun direction target: ~10 degrees wide
-
-
-def sun_direction_loss(sun_log_p: torch.Tensor, cell_dirs: torch.Tensor, target: torch.Tensor,
-                       weight: torch.Tensor) -> torch.Tensor:
-    """Negative log-likelihood of target directions (B, 3) under the probe head's sun distribution over the grid's
-    cells (``sun_log_p`` (B, N), cells at ``cell_dirs`` (N, 3), same frame), each cell spread by a
-    SUN_TARGET_KAPPA von Mises-Fisher kernel; the mean over the views with ``weight`` (B,) (0: no sun to find).
-    Unlike a loss on the soft arg-max's mean axis, it still pulls when the distribution sits on the wrong peak."""
-    log_kernel = SUN_TARGET_KAPPA * (target @ cell_dirs.T - 1)
-    nll = -torch.logsumexp(sun_log_p + log_kernel, -1)
-    return (nll * weight).sum() / weight.sum().clamp_min(1.0)
-
-
-def sun_supervision_loss(sun_log_p: torch.Tensor, world_to_probe: torch.Tensor, envmaps: torch.Tensor, height: int,
-                         width: int) -> torch.Tensor:
-    """The diagnostic supervision of the probe head's sun: its distribution over the (height x width) grid's cells
-    (``sun_log_p`` (2B, N), predictions 2i + j: item i, view j; probe frames ``world_to_probe`` (2B, 3, 3)) against
-    the dominant direction of each item's GT world-frame env map (B, H, W, 3), where the map has one."""
-    direction, fraction = dominant_direction(envmaps)
-    target = (world_to_probe @ direction.repeat_interleave(2, 0).to(world_to_probe).unsqueeze(-1))[..., 0]
-    cells = equirect_directions(height, width, device=target.device, dtype=target.dtype).reshape(-1, 3)
-    sunny = (fraction >= SUN_FRACTION).to(target).repeat_interleave(2, 0)
-    return sun_direction_loss(sun_log_p, cells, target, sunny)
-
-
 def supervised_light_loss(light, envmaps: torch.Tensor, kind: str) -> torch.Tensor:
     """The diagnostic light supervision of the 2B world-frame predicted lights (2i + j: item i, view j) by the
     items' GT world-frame env maps (B, H, W, 3). "map": L1 of log(1 + radiance) over the map; "probe": si-RMSE
@@ -119,7 +93,7 @@ def supervised_light_loss(light, envmaps: torch.Tensor, kind: str) -> torch.Tens
         pred_env = light.to_envmap(env.shape[1], env.shape[2]).image
         return (torch.log1p(pred_env) - torch.log1p(env)).abs().mean()
     if kind != "probe":
-        raise ValueError(f"the light is supervised on the 'map' or the 'probe' here ('sun': sun_supervision_loss), got {kind!r}")
+        raise ValueError(f"the light is supervised on the 'map' or the 'probe' here, got {kind!r}")
     scene = _probe_scene()
     metal = lambda table, k: scene.render_table(table[k:k + 1].expand(len(scene.view), -1, -1, -1), ["metal"])["metal"]  # noqa: E731
     gt = [metal(envmaps, i) for i in range(len(envmaps))]  # once per item: both its views share the map

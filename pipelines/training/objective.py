@@ -17,17 +17,8 @@ from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
 from .config import SG_LIGHT, TrainConfig
-from ..model.light_probe import world_to_probe
-from .losses import (foreground_l1, gradient_loss, image_space, soft_iou_loss, sun_supervision_loss,
-                     supervised_light_loss)
+from .losses import foreground_l1, gradient_loss, image_space, soft_iou_loss, supervised_light_loss
 from ..model.model_input import encoder_input
-from ..model.pixel_normals import normal_loss
-
-
-# The sun supervision's negative log-likelihood is ~3 where the image terms are ~0.2: at weight 1 its gradient
-# through the global code (the head's FiLM) took over the encoder (metallic normals 8.7 -> 17 degrees). Adam
-# scales each parameter's step, so the head, which the term alone steers, still learns at a small weight.
-SUN_SUPERVISION_WEIGHT = 0.05
 
 
 @dataclass
@@ -69,12 +60,7 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:], independent=other),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
-    if config.supervision == "sun":  # the probe head's sun (TrainConfig.validate checks it has one)
-        terms["light_supervision"] = sun_supervision_loss(pred.light_params["sun_log_p"],
-                                                          world_to_probe(views.world_to_camera.to(target)),
-                                                          batch["envmap"], pred.config.env_height, pred.config.env_width)
-        weights["light_supervision"] = SUN_SUPERVISION_WEIGHT
-    elif config.supervision in ("light-map", "light-probe"):
+    if config.supervision in ("light-map", "light-probe"):
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.supervision.split("-")[1])
         weights["light_supervision"] = 1.0
@@ -133,11 +119,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, independent_rgb)
-    if config.supervision == "shape":  # each prediction's normals in its own input view against the GT mesh's there
-        own = renderer.render_normals(pred.meshes(), views).image
-        terms["shape_supervision"] = normal_loss(own, batch["normals"].reshape(own.shape))
-        weights["shape_supervision"] = 1.0
-    elif config.supervision == "albedo":  # each prediction's albedo in its own input view against the GT's there
+    if config.supervision == "albedo":  # each prediction's albedo in its own input view against the GT's there
         own = renderer.render_albedo(pred.meshes(), views, pred.material()).rgb
         terms["albedo_supervision"] = foreground_l1(image_space(own), image_space(batch["albedo"].reshape(own.shape)),
                                                     flat[..., 3])

@@ -53,12 +53,6 @@ VARIANTS: dict[str, Variant] = {
     "light-supervised-probe": Variant("the light supervised by the GT map's rough-metal probe (the light metric)",
                                       {"supervision": "light-probe"}, kind="diagnostic",
                                       runs=(("glossy", 0), ("metallic", 0))),
-    "sun-supervised": Variant("the probe head's sun distribution supervised by each sunny GT map's dominant direction: "
-                              "what one view's cue through the predicted surface can tell a head of the sun",
-                              {"supervision": "sun"}, kind="diagnostic", runs=(("metallic", 0),)),
-    "shape-supervised": Variant("the predicted normals supervised by the GT mesh's in the input view: what one view can "
-                                "predict of the normals when told them",
-                                {"supervision": "shape"}, kind="diagnostic", runs=(("metallic", 0),)),
     "albedo-supervised": Variant("the predicted albedo supervised by the GT's in the input view: whether the light "
                                  "takes the sky's colour when the albedo cannot keep it",
                                  {"supervision": "albedo"}, kind="diagnostic", runs=(("metallic", 0),)),

@@ -16,9 +16,9 @@ from pipelines.model import pixel_normals
 from pipelines.training.config import ConfigError, TrainConfig
 from pipelines.training.dataset import TrainingViews
 from pipelines.model.pixel_normals import normal_loss
-from pipelines.training.losses import SUN_TARGET_KAPPA, foreground_l1, gradient_loss, independent_abs, sun_direction_loss
+from pipelines.training.losses import foreground_l1, gradient_loss, independent_abs
 from pipelines.model.model_input import encoder_input
-from pipelines.training.objective import SUN_SUPERVISION_WEIGHT, multiview_losses
+from pipelines.training.objective import multiview_losses
 from pipelines.training.runs import PIXEL_NORMALS, fitted_pixel_normals, make_model, make_renderer
 from pipelines.train import learning_rate_factor, train
 
@@ -59,7 +59,7 @@ def test_gradients_reach_every_predicted_quantity(tiny_glossy):
         pred = snap["pred"]
         # SH shading is Lambertian (DIB-R): roughness and specular do not enter it, by design
         material = [pred.roughness, pred.specular] if shading != "sh" else []
-        # the probe head's sun distribution (sun_log_p) is read only by the diagnostic sun supervision; MC's grid
+        # the probe head's sun distribution (sun_log_p) is read by no loss (the sun's lobe is its mean); MC's grid
         # ("image", the light it predicts) is shaded in training as its parts, the sky's grid and the sun's lobe
         light = [v for k, v in pred.light_params.items() if k != "sun_log_p" and not (shading == "mc" and k == "image")]
         tensors = [pred.verts, pred.texture] + material + light
@@ -77,9 +77,7 @@ def _trained_by_one_term(tiny_glossy, batch: dict, term: str, **fields):
     model = make_model(cfg, 32)
     lap = uniform_laplacian(model.faces, model.template_dirs.shape[1])
     total, terms, _ = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, lap)
-    weights = {"light_supervision": SUN_SUPERVISION_WEIGHT if fields.get("supervision") == "sun" else 1.0,
-               "shape_supervision": 1.0, "albedo_supervision": 1.0}
-    assert total.item() == pytest.approx(weights[term] * terms[term].item()) and total.item() > 0
+    assert total.item() == pytest.approx(terms[term].item()) and total.item() > 0  # the term at weight 1
     total.backward()
     return model, lap
 
@@ -102,33 +100,6 @@ def test_light_supervision_compares_the_predicted_light_with_each_items_gt_map(t
         config(tiny_glossy, "unused", lobes=4, supervision="sky").validate()
 
 
-def test_sun_direction_loss_is_least_where_the_distribution_sits_on_the_target():
-    cells = torch.nn.functional.normalize(torch.tensor([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]]), dim=-1)
-    target = torch.tensor([[1.0, 0, 0]])
-    at = lambda k: torch.log(torch.nn.functional.one_hot(torch.tensor([k]), 4).float().clamp_min(1e-30))  # noqa: E731
-    loss = lambda k, w=1.0: float(sun_direction_loss(at(k), cells, target, torch.tensor([w])))  # noqa: E731
-    assert loss(0) == pytest.approx(0.0, abs=1e-6)  # all the mass on the target's cell
-    assert loss(3) == pytest.approx(SUN_TARGET_KAPPA * (1 - 0.5 ** 0.5), rel=1e-5)  # 45 degrees off
-    assert loss(1) == pytest.approx(SUN_TARGET_KAPPA, rel=1e-5) and loss(1) > loss(3)
-    assert loss(1, w=0.0) == 0.0  # a view without a sun does not count
-    # it pulls a distribution stuck on a wrong peak towards the target
-    logits = torch.tensor([[0.0, 20.0, 0.0, 0.0]], requires_grad=True)
-    sun_direction_loss(torch.log_softmax(logits, -1), cells, target, torch.ones(1)).backward()
-    assert logits.grad[0, 0] < 0 and logits.grad[0, 1] > 0
-
-
-def test_sun_supervision_teaches_only_the_probe_heads_sun_and_needs_one(tiny_glossy):
-    """The diagnostic --supervision sun: the probe head's sun distribution against each sunny item's GT
-    dominant direction; with every other weight at 0, only the light head learns."""
-    b = TrainingData(str(tiny_glossy), 32, envmaps=True).batch(0, 2, seed=0)
-    model, _ = _trained_by_one_term(tiny_glossy, b, "light_supervision", supervision="sun")
-    assert model.light_head.out.weight.grad.abs().max() > 0 and model.light_head.sun_temperature.grad.abs() > 0
-    assert model.shape_head.bias.grad is None or model.shape_head.bias.grad.abs().max() == 0
-    for wrong in ({"light_head": "global"}, {"shading": "mc"}):
-        with pytest.raises(ConfigError, match="supervision 'sun'"):
-            TrainConfig(supervision="sun", **wrong).validate()
-
-
 def test_normal_loss_is_one_minus_the_cosine_over_the_pixels_both_renders_cover():
     pred, target = torch.zeros(1, 2, 2, 4), torch.zeros(1, 2, 2, 4)
     pred[..., 0], target[..., 0] = 2.0, 1.0  # the same direction (a predicted normal need not be unit length)
@@ -136,21 +107,6 @@ def test_normal_loss_is_one_minus_the_cosine_over_the_pixels_both_renders_cover(
     pred[..., 3], target[..., 3] = 1.0, 1.0
     target[0, 1, 1, 3] = 0.0  # not covered by the target: not counted
     assert float(normal_loss(pred, target)) == pytest.approx(0.5 / 3)
-
-
-def test_shape_supervision_compares_each_predictions_normals_with_the_gt_meshs_in_its_input_view(tiny_glossy):
-    """The diagnostic --supervision shape: the batch carries the GT mesh's normals in each item's views (zero
-    loss for the GT mesh itself), and with every other weight at 0 only the shape learns."""
-    data = TrainingData(str(tiny_glossy), 32, normals=True)
-    b = data.batch(0, 2, seed=0)
-    ds = MultiViewDataset(str(tiny_glossy), views_per_item=1)
-    obj = ds.samples[int(b["sample"][0])][0]
-    cams = Cameras(b["world_to_camera"][0], b["fov"][0], 32)
-    truth = Renderer("sg").render_normals(ds.mesh(obj).expand(2), cams).image
-    assert float(normal_loss(truth, b["normals"][0])) < 1e-6 and float(b["normals"][0][..., 3].mean()) > 0.05
-    assert "normals" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
-    model, _ = _trained_by_one_term(tiny_glossy, b, "shape_supervision", supervision="shape")
-    assert model.shape_head.bias.grad.abs().max() > 0 and model.material_head.weight.grad.abs().max() == 0
 
 
 def test_albedo_supervision_compares_each_predictions_albedo_with_the_gt_albedo_in_its_input_view(tiny_glossy):
@@ -173,7 +129,6 @@ def test_the_pixel_normals_are_fitted_to_the_gt_normals_kept_in_the_run_folder_a
     loss falls, the global random state is left as it was), saved in the run folder and read back from there (not
     fitted again), and held: the model's losses do not reach it."""
     cfg = config(tiny_glossy, tmp_path / "run", lobes=4, probe_normals="pixels")
-    assert cfg.reads_gt_normals() and not TrainConfig().reads_gt_normals()
     data = TrainingData(cfg.dataset, 32, normals=True)
     torch.manual_seed(0)
     model = make_model(cfg, 32)
@@ -613,6 +568,9 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
         load_config(run("two-colour", light_colour="two-colour"))
     with pytest.raises(DataError, match=r"texture='projected-unlit'.*git checkout 2527105"):
         load_config(run("unlit", texture="projected-unlit"))
+    for told in ("sun", "shape"):
+        with pytest.raises(DataError, match=rf"supervision='{told}'.*git checkout f62f542"):
+            load_config(run(f"{told}-supervised", supervision=told, variant=f"{told}-supervised"))
     assert load_config(run("default-2", own_light_material="learnt")) == TrainConfig(iterations=6000)
     with pytest.raises(DataError, match=r"own_light_material='held'.*git checkout de11f3d"):
         load_config(run("own-light-held", own_light_material="held"))
