@@ -178,7 +178,8 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
     torch.manual_seed(config.seed)
     data = TrainingViews(ds, check_trainable_size(ds), envmaps=config.supervision in ("light-map", "light-probe"),
                          normals=config.probe_normals == "pixels", albedos=config.supervision == "albedo",
-                         device=config.device, max_objects=config.train_objects)
+                         roughness=config.supervision == "roughness", device=config.device,
+                         max_objects=config.train_objects)
     model = make_model(config, data.resolution).to(config.device)
     if config.probe_normals == "pixels":  # fitted once, before the model trains, held, read in evaluation
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)

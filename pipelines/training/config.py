@@ -85,8 +85,8 @@ class TrainConfig:
                               "(pixels: 3D supervision the paper does not use; training reads the surface's)",
                               ("surface", "pixels"))
     supervision: str = _opt("none", "diagnostic: ground truth the run is told: the GT env map (light-map), its rough-metal "
-                            "probe (light-probe), or the GT albedo in the input view (albedo)",
-                            ("none", "light-map", "light-probe", "albedo"))
+                            "probe (light-probe), the GT albedo in the input view (albedo), or the object's GT "
+                            "roughness (roughness)", ("none", "light-map", "light-probe", "albedo", "roughness"))
     # device
     device: str = _opt("cpu", "where the model, the batches and the renders live (cuda: the first GPU; one process)",
                        ("cpu", "cuda"))
@@ -116,7 +116,7 @@ class TrainConfig:
                 raise ConfigError(f"{f.name} must be > {above:g}, got {value!r}")
             if maximum is not None and value > maximum:
                 raise ConfigError(f"{f.name} must be <= {maximum:g} (more does not fit in memory), got {value!r}")
-        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "albedo"):
+        if not any((self.w_image, self.w_iou, self.w_gradient)) and self.supervision in ("none", "albedo", "roughness"):
             raise ConfigError("every image and silhouette loss weight is 0 (w_image, w_iou, w_gradient): nothing would "
                               "train the model; give at least one a positive weight")
         if self.probe_normals == "pixels" and not self.has_probe_head():

@@ -15,13 +15,14 @@ from dibrpp.io import DataError
 class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
-    so resumes are exact. ``envmaps``, ``normals`` (the GT mesh's rendered in every view) and ``albedos`` (every
-    view's) load GT only for the diagnostics (and the pixel normals' fit) that read it. The tensors live on ``device``; the batches' indices are drawn on the
+    so resumes are exact. ``envmaps``, ``normals`` (the GT mesh's rendered in every view), ``albedos`` (every
+    view's) and ``roughness`` (each sample's object's) load GT only for the diagnostics (and the pixel normals' fit) that read it. The tensors live on ``device``; the batches' indices are drawn on the
     CPU, so a run draws the same batches on either. ``max_objects``: only the split's first objects (their every
     sample), for learning curves; 0 for all."""
 
     def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, normals: bool = False,
-                 albedos: bool = False, device: str | torch.device = "cpu", max_objects: int = 0):
+                 albedos: bool = False, roughness: bool = False, device: str | torch.device = "cpu",
+                 max_objects: int = 0):
         if ds.resolution != image_size:
             raise DataError(f"{ds.root}: images are {ds.resolution}x{ds.resolution} but the config trains at "
                             f"{image_size}")
@@ -49,6 +50,8 @@ class TrainingViews:
         self.normals = self._gt_normals(ds) if normals else None
         self.albedos = torch.stack([ds.view_albedo(obj, env, v) for obj, env in self.samples for v in range(n_views)]).view(
             n_samples, n_views, image_size, image_size, 3) if albedos else None
+        self.roughness = torch.tensor([ds.material_params(obj)["roughness"] for obj, _ in self.samples],
+                                      dtype=torch.float32, device=device) if roughness else None
         self.images, self.world_to_camera, self.fov = (t.to(device) for t in (self.images, self.world_to_camera, self.fov))
         self.normals, self.albedos = (None if t is None else t.to(device) for t in (self.normals, self.albedos))
         if self.envmaps is not None:
@@ -75,6 +78,8 @@ class TrainingViews:
             out["normals"] = self.normals[s, views]
         if self.albedos is not None:
             out["albedo"] = self.albedos[s, views]
+        if self.roughness is not None:
+            out["roughness"] = self.roughness[samples]
         if self.envmaps is not None:
             out["envmap"] = torch.stack([self.envmaps[e] for e in self.envmap_of_sample[samples].tolist()])
         return out

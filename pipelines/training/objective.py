@@ -124,6 +124,10 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
         terms["albedo_supervision"] = foreground_l1(image_space(own), image_space(batch["albedo"].reshape(own.shape)),
                                                     flat[..., 3])
         weights["albedo_supervision"] = 1.0
+    elif config.supervision == "roughness":  # each prediction's roughness against its object's GT
+        target_roughness = batch["roughness"].repeat_interleave(2).to(pred.roughness)
+        terms["roughness_supervision"] = (pred.roughness.flatten() - target_roughness).abs().mean()
+        weights["roughness_supervision"] = 1.0
     total = sum(weights[k] * v for k, v in terms.items())
     return total, terms, dict(input=flat, render=out.rgb, alpha=out.alpha, pred=pred, target=target, src=plan.src,
                               world_to_camera=views.world_to_camera)

@@ -123,6 +123,20 @@ def test_albedo_supervision_compares_each_predictions_albedo_with_the_gt_albedo_
     assert model.light_head.out.weight.grad is None or model.light_head.out.weight.grad.abs().max() == 0
 
 
+def test_roughness_supervision_compares_each_predictions_roughness_with_its_objects_gt(tiny_glossy):
+    """The diagnostic --supervision roughness: the batch carries each item's GT roughness (its object's), and with
+    every other weight at 0 the material head learns and the texture and the light do not."""
+    b = TrainingData(str(tiny_glossy), 32, roughness=True).batch(0, 2, seed=0)
+    ds = MultiViewDataset(str(tiny_glossy), views_per_item=1)
+    truth = [ds.material_params(ds.samples[int(k)][0])["roughness"] for k in b["sample"]]
+    assert b["roughness"].tolist() == pytest.approx(truth)
+    assert "roughness" not in TrainingData(str(tiny_glossy), 32).batch(0, 2, seed=0)
+    model, _ = _trained_by_one_term(tiny_glossy, b, "roughness_supervision", supervision="roughness")
+    assert model.material_head.weight.grad[0].abs().max() > 0  # the roughness's row
+    assert model.tex_out[-1].weight.grad is None or model.tex_out[-1].weight.grad.abs().max() == 0
+    assert model.light_head.out.weight.grad is None or model.light_head.out.weight.grad.abs().max() == 0
+
+
 def test_the_pixel_normals_are_fitted_to_the_gt_normals_kept_in_the_run_folder_and_held(tiny_glossy, tmp_path,
                                                                                         monkeypatch):
     """Variant pixel-normals: the network is fitted to the training views' GT normals before the model trains (its
