@@ -16,8 +16,9 @@ class TrainingViews:
     """Every view of a split decoded once into tensors (linear RGBA images as rendered, cameras), and the
     training batches drawn from them: (sample, view pair) items, a pure function of (seed, iteration, rank),
     so resumes are exact. ``envmaps``, ``normals`` (the GT mesh's rendered in every view), ``albedos`` (every
-    view's) and ``roughness`` (each sample's object's) load GT only for the diagnostics (and the pixel normals' fit) that read it. The tensors live on ``device``; the batches' indices are drawn on the
-    CPU, so a run draws the same batches on either. ``max_objects``: only the split's first objects (their every
+    view's) and ``roughness`` (each sample's object's) load GT only for the diagnostics (and the pixel normals' fit)
+    that read it. The tensors live on ``device``; the batches' indices are drawn on the CPU, so a run draws the same
+    batches on either. ``max_objects``: only the split's first objects (their every
     sample), for learning curves; 0 for all."""
 
     def __init__(self, ds: MultiViewDataset, image_size: int, envmaps: bool = False, normals: bool = False,

@@ -41,9 +41,6 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third",
                            {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    "roughness-supervised": Variant("the predicted roughness supervised by the car's GT (L1): whether the light takes "
-                                    "the sky's colour when a mirror's reflection cannot be blurred",
-                                    {"supervision": "roughness"}, kind="diagnostic", runs=(("metallic", 0),)),
     # the variant whose numbers the README cites
     "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "
@@ -59,6 +56,9 @@ VARIANTS: dict[str, Variant] = {
     "albedo-supervised": Variant("the predicted albedo supervised by the GT's in the input view: whether the light "
                                  "takes the sky's colour when the albedo cannot keep it",
                                  {"supervision": "albedo"}, kind="diagnostic", runs=(("metallic", 0),)),
+    "roughness-supervised": Variant("the predicted roughness supervised by the car's GT (L1): whether the light takes "
+                                    "the sky's colour when a mirror's reflection cannot be blurred",
+                                    {"supervision": "roughness"}, kind="diagnostic", runs=(("metallic", 0),)),
 }
 
 # the fields some variant sets, and global_grid (its 0 only undoes a default): a run that changes them by hand is
