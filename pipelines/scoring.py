@@ -15,7 +15,7 @@ from datagen.reader import MultiViewDataset, collate
 from dibrpp.display import display_image, tonemap_envmap
 from dibrpp.lights import EnvMap
 
-from .evaluation import metrics
+from .evaluation import albedo_metrics, metrics
 from .evaluation.summary import NOVEL_AZIMUTHS
 from .model.model_input import encoder_input
 from .training.refine import refine_light
@@ -67,11 +67,11 @@ def predict_views(model, renderer, ds, items: list[dict], figure: bool = False, 
                 "iou": metrics.iou_loss(out_alpha, gt_mask),
                 **metrics.envmap_losses(pred_env, env),
                 "texture": metrics.ncc_loss(albedo, b["albedo"][:, 0]),
-                "albedo_sky_blue": metrics.albedo_sky_blue(albedo, b["albedo"][:, 0], gt_n, gt_alpha),
+                "albedo_sky_blue": albedo_metrics.albedo_sky_blue(albedo, b["albedo"][:, 0], gt_n, gt_alpha),
                 "chamfer": torch.tensor(chamfer, dtype=torch.float64),
                 **material_values(pred, [ds.material_params(obj) for obj in b["object"].tolist()]),
-                "albedo_scale": metrics.albedo_scale(albedo, b["albedo"][:, 0], (gt_mask > 0.5) & (out_alpha > 0.5)),
-                "light_scale": metrics.light_scale(pred_env, env)}
+                "albedo_scale": albedo_metrics.albedo_scale(albedo, b["albedo"][:, 0], (gt_mask > 0.5) & (out_alpha > 0.5)),
+                "light_scale": albedo_metrics.light_scale(pred_env, env)}
     gt_light = EnvMap(env)
     probes = metrics.ProbeScene(cams.world_to_camera)
     per_view.update(metrics.light_metrics(light, gt_light, probes))

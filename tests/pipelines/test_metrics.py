@@ -241,7 +241,7 @@ def test_the_median_of_an_even_count_is_the_mean_of_the_middle_two_and_nan_is_ig
 
 
 def test_the_albedo_s_sky_blue_is_its_blue_where_it_faces_up_over_where_it_faces_sideways_beyond_the_gt_s():
-    from pipelines.evaluation.metrics import albedo_sky_blue
+    from pipelines.evaluation.albedo_metrics import albedo_sky_blue
 
     gt = torch.full((1, 2, 2, 3), 0.5)  # a grey albedo
     normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).view(1, 2, 2, 3)
@@ -261,7 +261,7 @@ def test_the_albedo_s_sky_blue_is_its_blue_where_it_faces_up_over_where_it_faces
 
 
 def test_the_albedo_s_scale_is_read_where_both_silhouettes_cover():
-    from pipelines.evaluation.metrics import albedo_scale
+    from pipelines.evaluation.albedo_metrics import albedo_scale
 
     gt = torch.full((2, 2, 2, 3), 0.25)
     pred = 2 * gt
@@ -272,7 +272,7 @@ def test_the_albedo_s_scale_is_read_where_both_silhouettes_cover():
 
 
 def test_the_light_s_scale_weighs_texels_by_their_solid_angle():
-    from pipelines.evaluation.metrics import light_scale
+    from pipelines.evaluation.albedo_metrics import light_scale
 
     gt = torch.ones(1, 8, 16, 3)
     assert float(light_scale(3 * gt, gt)[0]) == pytest.approx(3.0)
