@@ -217,7 +217,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
         done = it + 1
         if rank == 0:
             if done % config.log_every == 0 or done == config.iterations:
-                log.write(done, total, terms, time.perf_counter() - t_start)
+                log.write(done, total, terms, time.perf_counter() - t_start, snap["pred"])
                 bar.set_postfix(loss=f"{total.item():.4f}", img=f"{terms['image'].item():.4f}", iou=f"{terms['iou'].item():.3f}")
             if done % config.checkpoint_every == 0 or done == config.iterations:
                 write_snapshot(out / runs.SNAPSHOTS / f"iter_{done:06d}.png", snap)
@@ -239,8 +239,9 @@ LOG_HEADER = "iteration,total,image,iou,laplacian,gradient,seconds\n"
 
 
 class TrainingLog:
-    """log.csv (the eq. 8 terms) and TensorBoard (every term, the diagnostics' too). On resume the CSV is cut back
-    to the checkpoint (rows after it are logged again) and its ``seconds`` continue from the checkpoint's row."""
+    """log.csv (the eq. 8 terms) and TensorBoard (every term, the diagnostics' too, and the batch's median
+    material: a reflection that blurs or dims along training shows there). On resume the CSV is cut back to the
+    checkpoint (rows after it are logged again) and its ``seconds`` continue from the checkpoint's row."""
 
     def __init__(self, path: Path, start: int):
         self.path, self.start = path, start
@@ -262,7 +263,7 @@ class TrainingLog:
             return
         self.board = SummaryWriter(str(self.path.parent / runs.TENSORBOARD), purge_step=self.start + 1)
 
-    def write(self, iteration: int, total: torch.Tensor, terms: dict, seconds: float) -> None:
+    def write(self, iteration: int, total: torch.Tensor, terms: dict, seconds: float, pred=None) -> None:
         row = [str(iteration), f"{total.item():.6f}", *(f"{terms[k].item():.6f}" for k in LOG_TERMS),
                f"{self.seconds_before + seconds:.2f}"]
         with open(self.path, "a") as f:
@@ -272,6 +273,8 @@ class TrainingLog:
             for k, v in terms.items():
                 self.board.add_scalar(f"loss/{k}", v.item(), iteration)
             self.board.add_scalar("time/seconds", self.seconds_before + seconds, iteration)
+            for name in ("roughness", "specular", "metallic") if pred is not None else ():
+                self.board.add_scalar(f"material/{name}", getattr(pred, name).detach().median().item(), iteration)
 
     def close(self) -> None:
         if self.board is not None:

@@ -46,6 +46,14 @@ def test_every_shading_method_trains_and_the_loss_goes_down(tiny_glossy, tmp_pat
     assert last < 0.9 * first, (first, last)
     for name in ("checkpoint.pt", "loss.png", "summary.json", "snapshots/iter_000030.png"):
         assert (tmp_path / shading / name).exists()
+    if shading == "sg":  # TensorBoard holds the batch's median material along training
+        from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+        board = EventAccumulator(str(tmp_path / shading / "tensorboard"))
+        board.Reload()
+        roughness = [e.value for e in board.Scalars("material/roughness")]
+        assert len(roughness) == 30 and all(0 < r <= 1 for r in roughness)
+        assert {"material/specular", "material/metallic"} <= set(board.Tags()["scalars"])
 
 
 def test_gradients_reach_every_predicted_quantity(tiny_glossy):
