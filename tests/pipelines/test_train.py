@@ -390,6 +390,21 @@ def test_cross_view_renders_are_lit_by_the_views_light_and_again_by_the_predicti
     assert torch.equal(both.lit_by[n:], view.src[cross])
 
 
+def test_held_roughness_gets_no_gradient_from_the_renders_under_the_predictions_own_light():
+    from dibrpp.brdf import Material
+    from pipelines.training.objective import render_plan, roughness_held
+    plan = render_plan(2, TrainConfig())
+    own = plan.lit_by != plan.dst  # the cross-view renders again under the prediction's own light
+    assert own.sum() == 4 and torch.equal(plan.lit_by[own], plan.src[own])
+    level = torch.rand(len(plan.src), requires_grad=True)
+    held = roughness_held(Material(torch.rand(len(plan.src), 3), roughness=2 * level, metallic=3 * level), own)
+    assert torch.equal(held.roughness, 2 * level)  # the same values
+    (held.roughness + held.metallic).sum().backward()
+    assert level.grad[own].eq(3).all() and level.grad[~own].eq(5).all()  # the metallic is learnt from every render
+    with pytest.raises(ConfigError, match="cross-view-light both"):
+        TrainConfig(own_light_roughness="held", cross_view_light="view").validate()
+
+
 def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     """The probe head's sun floor: the image is the full light's, but the sun (the last lobe) sends no gradient to the shape,
     while the other lobes do."""
