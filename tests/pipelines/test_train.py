@@ -405,6 +405,20 @@ def test_held_roughness_gets_no_gradient_from_the_renders_under_the_predictions_
         TrainConfig(own_light_roughness="held", cross_view_light="view").validate()
 
 
+def test_the_roughness_prior_adds_the_mean_roughness_at_its_weight(tiny_glossy):
+    batch = TrainingData(tiny_glossy, 32).batch(0, 2, 0)
+    totals, terms = {}, {}
+    for w in (0.0, 0.5):  # the same model (seeded) and batch, with and without the prior
+        cfg = config(tiny_glossy, "unused", lobes=4, compile=False, w_roughness_prior=w)
+        torch.manual_seed(0)
+        model = make_model(cfg, 32)
+        laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
+        totals[w], terms[w], snap = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, laplacian)
+    assert "roughness_prior" not in terms[0.0]
+    assert torch.allclose(terms[0.5]["roughness_prior"], snap["pred"].roughness.mean())
+    assert torch.allclose(totals[0.5] - totals[0.0], 0.5 * terms[0.5]["roughness_prior"], atol=1e-5)
+
+
 def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     """The probe head's sun floor: the image is the full light's, but the sun (the last lobe) sends no gradient to the shape,
     while the other lobes do."""
