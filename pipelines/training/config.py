@@ -80,10 +80,6 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), or both that and its own (a render under each: one "
                                  "world light has to explain both views)", ("both", "view"))
-    own_light_roughness: str = _opt("learnt", "the surface's roughness in the renders under the prediction's own light in "
-                                    "the other view (cross_view_light both): learnt from them too, or held there (no "
-                                    "gradient): a reflection of light its view did not see is cheaper blurred",
-                                    ("learnt", "held"))
     global_grid: int = _opt(4, "side of the feature map the global code (shape, material) is read from: the image side / 16 "
                             "halved while above this (4: one more downsampling block per doubling above 64², so the "
                             "fully connected layer is the same at any larger input), or 0 for the image side / 16", minimum=0)
@@ -129,9 +125,6 @@ class TrainConfig:
         if self.probe_normals == "pixels" and not self.has_probe_head():
             raise ConfigError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with the probe "
                               "light head (--light-head probe) and --shading sg, sh-sg or mc")
-        if self.own_light_roughness == "held" and self.cross_view_light != "both":
-            raise ConfigError("own_light_roughness 'held' holds the roughness in the renders under the prediction's own "
-                              "light, which only cross_view_light 'both' draws; use it with --cross-view-light both")
         if self.variant and self.variant not in VARIANTS:
             raise ConfigError(f"unknown variant {self.variant!r}; {_did_you_mean(self.variant, VARIANTS)}")
         return self

@@ -11,7 +11,6 @@ from functools import partial
 import torch
 
 from dibrpp import Cameras, Renderer
-from dibrpp.brdf import Material
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.mesh import laplacian_smoothness
 from dibrpp.renderer import RenderOutput
@@ -44,11 +43,6 @@ def render_plan(batch_items: int, config: TrainConfig) -> RenderPlan:
     if config.cross_view_light == "both":  # ... under each of the two lights (the cross-view renders twice)
         src, dst, lit_by = torch.cat([src, src[cross]]), torch.cat([dst, dst[cross]]), torch.cat([lit_by, src[cross]])
     return RenderPlan(src, dst, lit_by)
-
-
-def roughness_held(material: Material, rows: torch.Tensor) -> Material:
-    """``material`` (one row per render) with its roughness held, without gradient, in the renders ``rows`` (bool)."""
-    return replace(material, roughness=torch.where(rows, material.roughness.detach(), material.roughness))
 
 
 def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, config: TrainConfig,
@@ -124,10 +118,7 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     elif config.has_probe_head():  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
         render = partial(render_sky_and_sun, second=second)  # train passes a second renderer where the config asks
         light = lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
-    material = shape_pred.material()
-    if config.own_light_roughness == "held":  # under a light read in another view, a blurred mirror hides its guess
-        material = roughness_held(material, plan.lit_by != plan.dst)
-    out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], material, light)
+    out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
     out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, independent_rgb)

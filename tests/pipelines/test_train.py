@@ -390,21 +390,6 @@ def test_cross_view_renders_are_lit_by_the_views_light_and_again_by_the_predicti
     assert torch.equal(both.lit_by[n:], view.src[cross])
 
 
-def test_held_roughness_gets_no_gradient_from_the_renders_under_the_predictions_own_light():
-    from dibrpp.brdf import Material
-    from pipelines.training.objective import render_plan, roughness_held
-    plan = render_plan(2, TrainConfig())
-    own = plan.lit_by != plan.dst  # the cross-view renders again under the prediction's own light
-    assert own.sum() == 4 and torch.equal(plan.lit_by[own], plan.src[own])
-    level = torch.rand(len(plan.src), requires_grad=True)
-    held = roughness_held(Material(torch.rand(len(plan.src), 3), roughness=2 * level, metallic=3 * level), own)
-    assert torch.equal(held.roughness, 2 * level)  # the same values
-    (held.roughness + held.metallic).sum().backward()
-    assert level.grad[own].eq(3).all() and level.grad[~own].eq(5).all()  # the metallic is learnt from every render
-    with pytest.raises(ConfigError, match="cross-view-light both"):
-        TrainConfig(own_light_roughness="held", cross_view_light="view").validate()
-
-
 def test_the_roughness_prior_adds_the_mean_roughness_at_its_weight(tiny_glossy):
     batch = TrainingData(tiny_glossy, 32).batch(0, 2, 0)
     totals, terms = {}, {}
@@ -625,6 +610,9 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
     assert load_config(run("default-2", own_light_material="learnt")) == TrainConfig(iterations=6000)
     with pytest.raises(DataError, match=r"own_light_material='held'.*git checkout de11f3d"):
         load_config(run("own-light-held", own_light_material="held"))
+    assert load_config(run("default-3", own_light_roughness="learnt")) == TrainConfig(iterations=6000)
+    with pytest.raises(DataError, match=r"own_light_roughness='held'.*git checkout fc03e2f"):
+        load_config(run("own-roughness-held", own_light_roughness="held"))
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
