@@ -22,7 +22,6 @@ import torch.nn.functional as F
 import trimesh
 from scipy.spatial import cKDTree
 
-
 from ..model.light_probe import mirror_directions, pixel_samples
 
 
