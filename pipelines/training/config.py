@@ -57,8 +57,8 @@ class TrainConfig:
     w_gradient: float = _opt(0.5, "weight of the multi-scale image-gradient L1 (the stand-in for VGG)", minimum=0.0)
     w_roughness_prior: float = _opt(0.0, "weight of the mean predicted roughness: the image cannot tell a blurred "
                                     "reflection from a blurred light, and the image loss hedges a light's error by "
-                                    "blurring the surface; this asks the light to carry the blur. For objects known to be mirror-like: it "
-                                    "holds rough paint sharp too", minimum=0.0)
+                                    "blurring the surface; this asks the light to carry the blur. For objects known "
+                                    "to be mirror-like: it holds rough paint sharp too", minimum=0.0)
     image_loss: str = _opt("hdr-srgb", "the space the image losses compare in: the sRGB curve continued above 1 "
                            "(highlights keep their gradient), or sRGB clipped at 1 (an 8-bit picture's, the paper's)",
                            ("hdr-srgb", "clipped"))
