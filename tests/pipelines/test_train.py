@@ -540,7 +540,9 @@ def test_the_default_models_train_as_they_did_before_the_retired_experiments_lef
     Compared only in quantities that another CPU's rounding cannot move past the tolerance: ATen's three kernel sets
     (ATEN_CPU_CAPABILITY=default, avx2, avx512, each with its own inductor cache) moved the losses by at most 1.5e-4
     relative and each tensor's norm by at most 0.7 %, while a tensor's sum (near-zero weights that six Adam steps
-    push either way) moved by up to 8 %. A change of the model or the objective moves the losses by far more."""
+    push either way) moved by up to 8 %. Rounding's differences grow with each step: on an AMD EPYC the SG losses
+    agreed within 1e-3 for four iterations and moved 0.14 % and 1.5 % at the fifth and sixth, so those two are held
+    to 5 %. A change of the model or the objective moves the first losses by far more."""
     torch._dynamo.reset()  # compile afresh, as a new process does: graphs compiled by earlier tests are not reused
     reference = json.loads(HOUSE_REFERENCE.read_text())[shading]
     run = tmp_path / shading
@@ -548,7 +550,9 @@ def test_the_default_models_train_as_they_did_before_the_retired_experiments_lef
     weights = torch.load(run / "checkpoint.pt", weights_only=True)["model"]
     assert {name: list(value.shape) for name, value in weights.items()} == reference["shapes"]
     losses = lambda text: [float(row.split(",")[1]) for row in text.splitlines()[1:]]  # noqa: E731 (total per row)
-    assert losses((run / "log.csv").read_text()) == pytest.approx(losses(reference["log"]), rel=1e-3)
+    got, expected = losses((run / "log.csv").read_text()), losses(reference["log"])
+    assert got[:4] == pytest.approx(expected[:4], rel=1e-3)
+    assert got[4:] == pytest.approx(expected[4:], rel=5e-2)
     for name, value in weights.items():
         assert float(value.double().norm()) == pytest.approx(reference["norms"][name], rel=2e-2, abs=1e-6), name
 
