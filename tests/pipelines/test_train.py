@@ -192,6 +192,9 @@ def test_the_pixel_normals_variant_trains_as_the_default_does(tiny_glossy, tmp_p
         assert torch.equal(variant[name], value), name
 
 
+# three MC trainings (a run, half of it, its resumption): 428 s on a 2-core AMD EPYC beside the other worker, near the
+# suite's 600 s default
+@pytest.mark.timeout(1500)
 def test_resume_continues_bit_for_bit(tiny_glossy, tmp_path):
     # a run of 4 iterations extended to 8 (a constant rate: the default's decay depends on the run's length)
     full = config(tiny_glossy, tmp_path / "full", shading="mc", lr_schedule="constant")
