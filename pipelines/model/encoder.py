@@ -43,8 +43,7 @@ MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
            "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels"),
-           "material_ends": ("clamped", "open")}
+           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
 
 
 @dataclass
@@ -76,9 +75,6 @@ class ModelConfig:
     env_width: int = 32
     predict_metallic: bool = False
     roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
-    # clamped: the material heads reach the ends of their ranges at finite logits, where their gradient stops |
-    # open: a sigmoid onto each range, whose gradient never stops (Adam rescales it in the tails)
-    material_ends: str = "clamped"
     width: int = 32  # channels of the first conv layer
     # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
     # at most this side, one more downsampling block per halving (the fully connected layer's size then stays the same)
@@ -122,12 +118,8 @@ class ModelConfig:
         return cls(**{k: tuple(v) if k in tuples else v for k, v in d.items() if k in names})
 
 
-SQUASH_MARGIN = 0.05  # how far a clamped material head's sigmoid overshoots its range
-
-
-def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = SQUASH_MARGIN) -> torch.Tensor:
-    """A sigmoid onto [lo, hi] that reaches both ends at finite x (it overshoots by ``margin`` and is clamped, where
-    its gradient is 0); with ``margin`` 0, a plain sigmoid onto (lo, hi)."""
+def squash(x: torch.Tensor, lo: float = 0.0, hi: float = 1.0, margin: float = 0.05) -> torch.Tensor:
+    """A sigmoid onto [lo, hi] that reaches both ends at finite x (it overshoots by ``margin`` and is clamped)."""
     t = (1 + 2 * margin) * torch.sigmoid(x) - margin
     return lo + (hi - lo) * t.clamp(0, 1)
 
@@ -296,9 +288,8 @@ class Encoder(nn.Module):
         """(B,) roughness, specular and metallic (0 unless the model predicts it) from the global code."""
         mat = self.material_head(code)
         lo, hi = self.config.roughness_range
-        margin = SQUASH_MARGIN if self.config.material_ends == "clamped" else 0.0
-        metallic = squash(mat[:, 2], margin=margin) if self.config.predict_metallic else torch.zeros_like(mat[:, 2])
-        return squash(mat[:, 0], lo, hi, margin), squash(mat[:, 1], margin=margin), metallic
+        metallic = squash(mat[:, 2]) if self.config.predict_metallic else torch.zeros_like(mat[:, 2])
+        return squash(mat[:, 0], lo, hi), squash(mat[:, 1]), metallic
 
     def visible_input(self, images: torch.Tensor) -> torch.Tensor:
         """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""

@@ -81,10 +81,6 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), or both that and its own (a render under each: one "
                                  "world light has to explain both views)", ("both", "view"))
-    material_ends: str = _opt("clamped", "the material heads' outputs: a sigmoid that reaches its range's ends at finite "
-                              "logits and is clamped there (where a head's gradient stops, and a roughness that reaches "
-                              "its floor stays), or a plain sigmoid, whose gradient never stops",
-                              ("clamped", "open"))
     global_grid: int = _opt(4, "side of the feature map the global code (shape, material) is read from: the image side / 16 "
                             "halved while above this (4: one more downsampling block per doubling above 64², so the "
                             "fully connected layer is the same at any larger input), or 0 for the image side / 16", minimum=0)

@@ -232,7 +232,7 @@ def make_model(config: TrainConfig, image_size: int) -> Encoder:
                                predict_metallic=bool(config.predict_metallic), texture=config.texture,
                                light_colour=config.light_colour, light_head=config.model_light_head(),
                                input_range=config.input_range, probe_normals=config.probe_normals,
-                               global_grid=config.global_grid, material_ends=config.material_ends))
+                               global_grid=config.global_grid))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:
