@@ -289,9 +289,7 @@ class Encoder(nn.Module):
         mat = self.material_head(code)
         lo, hi = self.config.roughness_range
         metallic = squash(mat[:, 2]) if self.config.predict_metallic else torch.zeros_like(mat[:, 2])
-        # diagnostic patch (entry 53): a dielectric's reflectance at normal incidence held at 0.04 (IOR 1.5, the
-        # metallic-roughness convention's), Principled's Specular IOR Level 0.5
-        return squash(mat[:, 0], lo, hi), torch.full_like(mat[:, 1], 0.5), metallic
+        return squash(mat[:, 0], lo, hi), squash(mat[:, 1]), metallic
 
     def visible_input(self, images: torch.Tensor) -> torch.Tensor:
         """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""
