@@ -43,7 +43,9 @@ MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
            "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels")}
+           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels"), "specular": ("learnt", "fixed")}
+# Principled's Specular IOR Level whose F0 is 0.04 (IOR 1.5): the metallic-roughness convention's dielectric
+DIELECTRIC_SPECULAR = 0.5
 
 
 @dataclass
@@ -75,6 +77,9 @@ class ModelConfig:
     env_width: int = 32
     predict_metallic: bool = False
     roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
+    # learnt: the specular level from the global code | fixed: DIELECTRIC_SPECULAR for every object (a metal's
+    # reflectance is its albedo either way)
+    specular: str = "learnt"
     width: int = 32  # channels of the first conv layer
     # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
     # at most this side, one more downsampling block per halving (the fully connected layer's size then stays the same)
@@ -115,6 +120,7 @@ class ModelConfig:
         if unknown:
             raise ValueError(f"the checkpoint's model configuration has unknown fields {sorted(unknown)}")
         tuples = {"scale_range", "roughness_range"}
+        d = {"specular": "learnt", **d}  # a model written before the option learnt its specular level
         return cls(**{k: tuple(v) if k in tuples else v for k, v in d.items() if k in names})
 
 
@@ -289,7 +295,9 @@ class Encoder(nn.Module):
         mat = self.material_head(code)
         lo, hi = self.config.roughness_range
         metallic = squash(mat[:, 2]) if self.config.predict_metallic else torch.zeros_like(mat[:, 2])
-        return squash(mat[:, 0], lo, hi), squash(mat[:, 1]), metallic
+        learnt = self.config.specular == "learnt"
+        specular = squash(mat[:, 1]) if learnt else torch.full_like(mat[:, 1], DIELECTRIC_SPECULAR)
+        return squash(mat[:, 0], lo, hi), specular, metallic
 
     def visible_input(self, images: torch.Tensor) -> torch.Tensor:
         """The part of :func:`encoder_input` images this model reads (clipped at 1 unless it reads the full range)."""

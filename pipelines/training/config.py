@@ -68,6 +68,9 @@ class TrainConfig:
     lobes: int = _opt(32, "SG lobes of the predicted light", minimum=2)
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     predict_metallic: bool | None = _opt(None, "predict the metallic parameter (unset: where the dataset has metals)")
+    specular: str = _opt("learnt", "a dielectric's specular level: learnt from the image, or fixed at Specular IOR Level "
+                         "0.5 (F0 0.04, IOR 1.5: the metallic-roughness convention; not the data's value)",
+                         ("learnt", "fixed"))
     texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
                         ("projected", "global"))
     light_colour: str = _opt("sky-ground", "white-balanced light whose sky (the probe head's) is tinted by a colour above "

@@ -79,6 +79,8 @@ def load_config(run: Path) -> TrainConfig:
             saved = without_options_left_later(saved)
         if isinstance(saved, dict) and is_earlier_config(saved):
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
+        if isinstance(saved, dict):
+            saved.setdefault("specular", "learnt")  # a run written before the option learnt its specular level
         if isinstance(saved, dict) and "global_grid" not in saved:
             saved["global_grid"] = _earlier_global_grid(Path(run))
         config = TrainConfig.from_dict(saved)
@@ -215,7 +217,7 @@ def load_run(folder: Path) -> Run:
 def check_config_matches_model(folder: Path, config: TrainConfig, model_config: ModelConfig) -> None:
     """A run's config.json and its checkpoint's model agree on what a run is read as (a config copied from
     another run would otherwise be evaluated, tabled or predicted with the wrong shading or lobe count)."""
-    for name in ("shading", "lobes", "predict_metallic"):
+    for name in ("shading", "lobes", "predict_metallic", "specular"):
         saved, built = getattr(config, name), getattr(model_config, name)
         if name == "predict_metallic" and saved is None:
             continue
@@ -232,7 +234,7 @@ def make_model(config: TrainConfig, image_size: int) -> Encoder:
                                predict_metallic=bool(config.predict_metallic), texture=config.texture,
                                light_colour=config.light_colour, light_head=config.model_light_head(),
                                input_range=config.input_range, probe_normals=config.probe_normals,
-                               global_grid=config.global_grid))
+                               global_grid=config.global_grid, specular=config.specular))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:

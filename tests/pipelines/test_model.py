@@ -12,7 +12,7 @@ from dibrpp.conventions import equirect_directions, linear_to_srgb
 from dibrpp.mesh import icosphere
 from pipelines.training import losses
 from pipelines.model.light_probe import compress_radiance, pixel_samples
-from pipelines.model.encoder import Encoder, ModelConfig, squash
+from pipelines.model.encoder import DIELECTRIC_SPECULAR, Encoder, ModelConfig, squash
 from pipelines.model.prediction import white_balance
 from pipelines.model.model_input import clip_input, decode_colour, encode_colour, encoder_input, input_radiance
 
@@ -149,6 +149,25 @@ def test_heads_reach_the_datasets_ground_truth(tiny_glossy):
         assert reach[-1]["metal"] <= m["metallic"] <= reach[1]["metal"]
         # every roughness down to the BRDF's floor is reachable; below it all roughnesses render the same
         assert reach[-1]["rough"] <= max(m["roughness"], math.sqrt(MIN_ALPHA)) <= reach[1]["rough"]
+
+
+def test_a_fixed_specular_is_the_dielectric_convention_whatever_the_head_says():
+    """specular 'fixed': every prediction's specular level is 0.5 (F0 0.04) at either end of the head, the other
+    materials still follow the head; a checkpoint written before the option reads as learnt."""
+    model = Encoder(ModelConfig(image_size=32, predict_metallic=True, specular="fixed"))
+    reach = {}
+    for sign in (-1, 1):
+        _saturate(model, model.material_head, sign)
+        with torch.no_grad():
+            reach[sign] = model(torch.rand(1, 4, 32, 32), _cams(1))
+    assert all(float(p.specular) == DIELECTRIC_SPECULAR == 0.5 for p in reach.values())
+    assert float(reach[-1].metallic) == 0 and float(reach[1].metallic) == 1
+    assert float(reach[-1].roughness) < float(reach[1].roughness)
+    saved = ModelConfig().to_dict()
+    del saved["specular"]
+    assert ModelConfig.from_dict(saved).specular == "learnt"
+    with pytest.raises(ValueError, match="specular"):
+        Encoder(ModelConfig(specular="0.04"))
 
 
 def test_roughness_has_gradient_over_its_whole_range():

@@ -403,6 +403,7 @@ def test_the_roughness_prior_adds_the_mean_roughness_at_its_weight(tiny_glossy):
         laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
         totals[w], terms[w], snap = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, laplacian)
     assert "roughness_prior" not in terms[0.0]
+    assert cfg.label() == "w_roughness_prior=0.5"  # not the default model in a table
     assert torch.allclose(terms[0.5]["roughness_prior"], snap["pred"].roughness.mean())
     assert torch.allclose(totals[0.5] - totals[0.0], 0.5 * terms[0.5]["roughness_prior"], atol=1e-5)
 
@@ -717,3 +718,18 @@ def test_a_run_written_before_global_grid_reads_as_the_model_it_trained(tmp_path
         torch.save({"model_config": {"image_size": size}, "model": {}, "iteration": 0}, run / "checkpoint.pt")
         config = load_config(run)
         assert config.global_grid == grid and config.label() == label, size
+
+
+def test_a_run_written_before_the_specular_option_learnt_it_and_a_config_that_disagrees_is_refused(tmp_path):
+    from pipelines.model.encoder import ModelConfig
+    from pipelines.training.runs import check_config_matches_model, load_config
+
+    (tmp_path / "config.json").write_text(json.dumps({k: v for k, v in TrainConfig().to_dict().items()
+                                                      if k != "specular"}))
+    config = load_config(tmp_path)
+    assert config.specular == "learnt" and config.label() == ""
+    fixed = TrainConfig(specular="fixed", predict_metallic=False)
+    assert make_model(fixed, 32).config.specular == "fixed" and fixed.label() == "specular=fixed"
+    check_config_matches_model(tmp_path, fixed, ModelConfig(specular="fixed"))
+    with pytest.raises(DataError, match="specular = 'fixed'.*specular = 'learnt'"):
+        check_config_matches_model(tmp_path, fixed, ModelConfig())
