@@ -77,9 +77,9 @@ class ModelConfig:
     env_width: int = 32
     predict_metallic: bool = False
     roughness_range: tuple[float, float] = (math.sqrt(MIN_ALPHA), 1.0)
-    # learnt: the specular level from the global code | fixed: DIELECTRIC_SPECULAR for every object (a metal's
+    # fixed: DIELECTRIC_SPECULAR for every object | learnt: the specular level from the global code (a metal's
     # reflectance is its albedo either way)
-    specular: str = "learnt"
+    specular: str = "fixed"
     width: int = 32  # channels of the first conv layer
     # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
     # at most this side, one more downsampling block per halving (the fully connected layer's size then stays the same)

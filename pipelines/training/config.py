@@ -68,9 +68,9 @@ class TrainConfig:
     lobes: int = _opt(32, "SG lobes of the predicted light", minimum=2)
     spp: int = _opt(8, "MC samples per pixel during training", minimum=1)
     predict_metallic: bool | None = _opt(None, "predict the metallic parameter (unset: where the dataset has metals)")
-    specular: str = _opt("learnt", "a dielectric's specular level: learnt from the image, or fixed at Specular IOR Level "
-                         "0.5 (F0 0.04, IOR 1.5: the metallic-roughness convention; not the data's value)",
-                         ("learnt", "fixed"))
+    specular: str = _opt("fixed", "a dielectric's specular level: fixed at Specular IOR Level 0.5 (F0 0.04, IOR 1.5: "
+                         "the metallic-roughness convention; not the data's value), or learnt from the image",
+                         ("fixed", "learnt"))
     texture: str = _opt("projected", "albedo looked up from the input view, or decoded from the global code",
                         ("projected", "global"))
     light_colour: str = _opt("sky-ground", "white-balanced light whose sky (the probe head's) is tinted by a colour above "
@@ -177,8 +177,8 @@ class TrainConfig:
         if self.variant:
             return self.variant
         mine, default = self.to_dict(), TrainConfig().to_dict()
-        if self.shading == "sh":  # SH light is always regressed: its light head is no choice
-            mine["light_head"] = default["light_head"]
+        if self.shading == "sh":  # SH light is always regressed and SH shading is Lambertian: no choice in either
+            mine["light_head"], mine["specular"] = default["light_head"], default["specular"]
         return ", ".join(f"{k}={mine[k]}" for k in EXPERIMENT_FIELDS if mine[k] != default[k])
 
 

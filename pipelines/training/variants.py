@@ -19,12 +19,13 @@ class Variant:
 
 # DIB-R++ as the paper describes it, where our renderer and data allow (docs/deviations.md lists what still differs)
 PUBLISHED = {"light_head": "global", "texture": "global", "light_colour": "free", "input_range": "clipped",
-             "cross_view_light": "view", "lr_schedule": "constant", "image_loss": "clipped"}
+             "cross_view_light": "view", "lr_schedule": "constant", "image_loss": "clipped", "specular": "learnt"}
 
 VARIANTS: dict[str, Variant] = {
+    # make train-published: SG and MC on each set
     "published": Variant("DIB-R++ as published: the light and texture regressed from the global code, light of any "
                          "colour, an 8-bit input, eq. 8's cross-view light, a constant rate, the image loss on clipped "
-                         "images", PUBLISHED, kind="published", runs=()),  # make train-published: SG and MC on each set
+                         "images, a learnt specular level", PUBLISHED, kind="published", runs=()),
     "k4": Variant("SG light with 4 lobes (Table E)", {"lobes": 4}, kind="paper"),
     "k8": Variant("SG light with 8 lobes (Table E)", {"lobes": 8}, kind="paper"),
     "k16": Variant("SG light with 16 lobes (Table E)", {"lobes": 16}, kind="paper"),
