@@ -77,8 +77,10 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         f"that set's kind, its mask as alpha; the training camera: distance {camera['distance']:g}, elevation "
         f"{camera['elevation_deg']:g}°, field of view {camera['fov_deg']:.1f}°; `predict` frames a photo's object as "
         "these views frame theirs (`--framing`).",
-        "- **Output:** a mesh (the template deformed), an albedo texture, roughness / specular"
-        f"{' / metallic' if config.get('predict_metallic') else ''}, the light as {config['lobes']} SG lobes "
+        "- **Output:** a mesh (the template deformed), an albedo texture, roughness"
+        f"{' / metallic' if config.get('predict_metallic') else ''}"
+        f"{' / specular' if config.get('specular', 'learnt') == 'learnt' else ' (a dielectric specular level of 0.5)'}, "
+        f"the light as {config['lobes']} SG lobes "
         "(world frame, written as an env map).",
         f"- **Code:** commit `{commit}`; weights in half precision (evaluated as shipped).",
         f"- **Retrain:** `{retrain}`", "",
