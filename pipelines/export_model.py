@@ -68,6 +68,7 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
                commit: str, retrain: str) -> str:
     dataset = Path(config["dataset"]).name
     took = f", {seconds / 60:.0f} min on the machine that trained it" if seconds else ""
+    learnt_specular = config.get("specular", "learnt") == "learnt"  # runs written before the option learnt it
     return "\n".join([
         f"# {name}", "",
         f"DIB-R++'s single-image model as this repository trains it by default: **{config['shading'].upper()} shading, "
@@ -79,7 +80,7 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         "these views frame theirs (`--framing`).",
         "- **Output:** a mesh (the template deformed), an albedo texture, roughness"
         f"{' / metallic' if config.get('predict_metallic') else ''}"
-        f"{' / specular' if config.get('specular', 'learnt') == 'learnt' else ' (a dielectric specular level of 0.5)'}, "
+        f"{' / specular' if learnt_specular else ' (a dielectric specular level of 0.5)'}, "
         f"the light as {config['lobes']} SG lobes "
         "(world frame, written as an env map).",
         f"- **Code:** commit `{commit}`; weights in half precision (evaluated as shipped).",
