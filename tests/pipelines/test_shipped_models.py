@@ -17,8 +17,8 @@ from pipelines.training.runs import load_camera, load_run, read_checkpoint
 REPO = Path(__file__).resolve().parents[2]
 MODELS = sorted(p for p in (REPO / "models").iterdir() if (p / "checkpoint.pt").exists())
 GLOSSY = REPO / "models" / "glossy-sg"
-# the worst of the shipped glossy model's 320 glossy test views by the hard-silhouette IoU loss below (median 0.082)
-WORST_DATASET_VIEW_IOU_LOSS = 0.155
+# the worst of the shipped glossy model's 320 glossy test views by the hard-silhouette IoU loss below (median 0.079)
+WORST_DATASET_VIEW_IOU_LOSS = 0.148
 
 
 def test_models_ship_for_glossy_and_metallic_in_at_most_60_mb():
@@ -85,8 +85,8 @@ def test_the_elevation_flag_reads_a_view_from_another_elevation(car_at, tmp_path
                              "--framing", "as-is", "--views", "1", *flags]) == 0
         return silhouette_iou_loss(out, alpha)
 
-    assert loss(15.0, 15.0) < loss(15.0, None) - 0.05  # measured 0.16 against 0.26 (the training's 27 degrees)
-    assert loss(40.0, 40.0) <= WORST_DATASET_VIEW_IOU_LOSS + 0.01  # measured 0.12 (0.12 read at 27 degrees too)
+    assert loss(15.0, 15.0) < loss(15.0, None) - 0.05  # measured 0.17 against 0.27 (the training's 27 degrees)
+    assert loss(40.0, 40.0) <= WORST_DATASET_VIEW_IOU_LOSS + 0.01  # measured 0.14 (0.10 read at 27 degrees)
 
 
 def test_make_demo_predicts_on_the_example_photo_and_shows_it(tmp_path, capsys):
