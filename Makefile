@@ -189,7 +189,7 @@ models: $(VENV)/.installed
 # results/demo/overview.png and report.html, in seconds.
 demo: $(VENV)/.installed
 	$(PY) -m pipelines.predict --checkpoint models/glossy-sg --image examples/car_photo.exr --elevation 15 \
-	  --azimuth 30 --out results/demo
+	  --azimuth 30 --true-light examples/sky.exr --out results/demo
 
 # A first look: the glossy set, SG, seed 0, evaluated.
 first-look: data-glossy

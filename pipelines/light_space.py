@@ -7,9 +7,9 @@ and a figure of held-out maps against their reconstructions. ``make light-space`
 
 The error is the mean absolute log-radiance error over the sphere at the space's 16 x 32 (a factor e^x), beside:
 the set's mean map (the constant map: what a latent of nothing gives) and PCA with as many components as the latent
-(the best linear space of that size, fitted to the same augmented training maps). ``--check DIR`` also scores the
-maps of a folder (e.g. a dataset's ``envmaps/`` or Blender's bundled HDRIs), each scaled to the set's median mean
-radiance.
+(the best linear space of that size, fitted to the same augmented training maps). Blender's bundled HDRIs (captured real
+light) are scored too, and ``--check DIR`` scores the maps of any folder (e.g. a dataset's ``envmaps/``), each scaled
+to the set's median mean radiance.
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ def fit(space: LightSpace, maps: torch.Tensor, steps: int, batch: int, kl: float
     g = torch.Generator().manual_seed(seed)
     h = space.config.height
     with torch.no_grad():  # the mean map over every turn of every map: a row profile
-        space.mean_map.copy_(to_log_map(maps, h).mean((0, 3), keepdim=True).mean(0, keepdim=True)
+        space.mean_map.copy_(to_log_map(maps, h).mean((0, 3), keepdim=True)
                              .expand_as(space.mean_map))
     opt = torch.optim.Adam(space.parameters(), lr=lr)
     losses = []
@@ -94,6 +94,16 @@ def read_folder(folder: Path, height: int) -> tuple[torch.Tensor, list[str]]:
         raise DataError(f"{folder} holds no .exr or .hdr env map")
     maps = [load_envmap_source(folder, s, height) for s in sources]
     return torch.from_numpy(np.stack(maps)).permute(0, 3, 1, 2).float(), [s["file"] for s in sources]
+
+
+def bundled_hdris() -> list[Path]:
+    """Blender's bundled HDRIs (captured real light, never trained on), where bpy is installed."""
+    from datagen.envmap_files import EnvmapError, blender_hdris
+
+    try:
+        return [blender_hdris()]
+    except EnvmapError:
+        return []
 
 
 @torch.no_grad()
@@ -154,7 +164,7 @@ def main(argv=None) -> int:
             results[f"held-out {kind}"] = scores(space, test_log[chosen], train_log)
     rows = [(f"held-out {test_kinds[i]}", test_maps[i:i + 1]) for i in range(min(4, n_test))]
     level = float(maps.mean((1, 2, 3)).median())
-    for folder in a.check:
+    for folder in [*a.check, *bundled_hdris()]:
         try:
             extra, names = read_folder(folder, maps.shape[2])
         except DataError as e:

@@ -44,6 +44,7 @@ from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in
 from dibrpp.display import display_image
 from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
 
+from .evaluation.metrics import dominant_direction
 from .evaluation.prediction_figure import OVERVIEW, REPORT, write_overview, write_report
 from .model import framing
 from .model.model_input import MAX_LOG_RADIANCE, encoder_input
@@ -174,9 +175,11 @@ def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Ten
 @torch.no_grad()
 def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=None, tolerance: float = 0.05,
             views: int = 4, spp: int = 64, refine_steps: int = 0, device: str = "cpu", elevation: float | None = None,
-            fov: float | None = None, distance: float | None = None, framing_mode: str = "auto", mask=None) -> dict:
+            fov: float | None = None, distance: float | None = None, framing_mode: str = "auto", mask=None,
+            true_light: Path | None = None) -> dict:
     check_output_folder("--out", out)
     image_rgba = read_input(image, background, tolerance, mask)  # a bad image is refused before the model loads
+    known = read_true_light(true_light) if true_light is not None else None
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model.to(device)
@@ -213,6 +216,10 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                     input=str(image), input_camera=dict(setup, azimuth_deg=azimuth), framing=framing_mode,
                     refine_steps=refine_steps,
                     albedo_gain=float(gain[0]), refine_seconds=round(time.perf_counter() - t0, 3) if refine_steps else 0.0)
+    predicted_map = light.to_envmap(64, 128).image[0]
+    if known is not None:
+        material.update(true_light=str(true_light), sun_angle_deg=round(sun_angle_deg(predicted_map, known), 1))
+        say(f"the predicted sun is {material['sun_angle_deg']:.0f} degrees from {true_light}'s")
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
     say(f"rendering {views} novel views at {2 * size} px ({config.shading}"
@@ -230,11 +237,32 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     write_overview(out / OVERVIEW, f"{image.name}: {config.shading.upper()} model {run}", rgba,
                    renderer.render_normals(pred.meshes(), input_view).image[0],
                    renderer.render_albedo(pred.meshes(), input_view, pred.material()).image[0],
-                   light.to_envmap(64, 128).image[0], list(renders))
+                   predicted_map, list(renders),
+                   None if known is None else (known, f"true light ({material['sun_angle_deg']:.0f}° between the suns)"))
     write_report(out, material)
     say(f"wrote {out}/: {OVERVIEW} and {REPORT} (open it), mesh.obj, mesh.mtl, texture.png, envmap.exr, "
         "material.json, novel_views.png")
     return material
+
+
+def read_true_light(path: Path) -> torch.Tensor:
+    """(64, 128, 3) the env map an image was taken under (world frame, the project's convention; .exr or .hdr),
+    resampled as the datasets resample a file map."""
+    from datagen.envmap_files import EnvmapError, check_envmap, read_envmap_file, resample_equirect
+
+    try:
+        env = read_envmap_file(path)
+        check_envmap(path, env)
+    except EnvmapError as e:
+        raise DataError(f"--true-light {e}") from None
+    return torch.from_numpy(np.ascontiguousarray(resample_equirect(env, 64))).float()
+
+
+def sun_angle_deg(predicted: torch.Tensor, true: torch.Tensor) -> float:
+    """Degrees between the dominant directions (evaluation.metrics.dominant_direction, the eval's sun) of two
+    world-frame maps (H, W, 3)."""
+    suns = dominant_direction(torch.stack([predicted, true]))[0]
+    return math.degrees(math.acos(float((suns[0] * suns[1]).sum().clamp(-1, 1))))
 
 
 class RefineProgress:
@@ -302,6 +330,10 @@ def build_parser() -> Parser:
     ap.add_argument("--refine-steps", type=int_in(0, MAX_STEPS), default=0, metavar="N",
                     help=f"refine the predicted light with N Adam steps against the input view (pipelines.training.refine; "
                          f"tens suffice, at most {MAX_STEPS}; the time they take is shown as they run)")
+    ap.add_argument("--true-light", metavar="FILE", type=Path,
+                    help="the env map the image was taken under (.exr or .hdr; world frame, +Z up, the project's "
+                         "convention; in the frame --azimuth places the camera in): shown beside the prediction, with "
+                         "the angle between their suns")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
                     help="where the model predicts and refines (the outputs are rendered on the CPU) (default: cpu)")
     return ap
@@ -319,7 +351,7 @@ def main(argv=None) -> int:
         material = predict(run, Path(args.image), Path(args.out), args.azimuth, args.background, args.tolerance,
                            views=args.views, spp=args.spp, refine_steps=args.refine_steps, device=args.device,
                            elevation=args.elevation, fov=args.fov, distance=args.distance, framing_mode=args.framing,
-                           mask=args.mask)
+                           mask=args.mask, true_light=args.true_light)
     except (DataError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -23,15 +23,19 @@ def on_white(rgba: torch.Tensor, linear: bool = True) -> torch.Tensor:
 
 
 def write_overview(path: Path, title: str, model_input: torch.Tensor, normals: torch.Tensor, albedo: torch.Tensor,
-                   envmap: torch.Tensor, novel_views: list[torch.Tensor]) -> Path:
+                   envmap: torch.Tensor, novel_views: list[torch.Tensor],
+                   true_light: tuple[torch.Tensor, str] | None = None) -> Path:
     """One row: the input as framed for the model (linear RGBA), the predicted shape (world normals, RGBA in
-    [-1, 1]), its albedo (linear RGBA), its light (an HDR equirect, tone-mapped), and novel views (linear RGBA)."""
+    [-1, 1]), its albedo (linear RGBA), its light (an HDR equirect, tone-mapped), the light the image was taken
+    under where it is known (its map and its panel's title), and novel views (linear RGBA)."""
     normal_colour = torch.cat([normals[..., :3] * 0.5 + 0.5, normals[..., 3:]], -1)
     panels = [("input (as the model sees it)", on_white(model_input)), ("shape (normals)", on_white(normal_colour, False)),
               ("albedo", on_white(albedo)), ("light (env map, up at the top)", tonemap_envmap(envmap).clamp(0, 1))]
+    if true_light is not None:
+        panels.append((true_light[1], tonemap_envmap(true_light[0]).clamp(0, 1)))
     panels += [(f"relit, view {i + 1}", on_white(v)) for i, v in enumerate(novel_views)]
     plt = pyplot()
-    ratios = [2 if name.startswith("light") else 1 for name, _ in panels]
+    ratios = [2 if image.shape[1] > 1.5 * image.shape[0] else 1 for _, image in panels]  # env maps are 2:1
     fig, axes = plt.subplots(1, len(panels), figsize=(2.3 * sum(ratios), 2.7), gridspec_kw=dict(width_ratios=ratios))
     for ax, (name, image) in zip(axes, panels):
         ax.imshow(image.numpy())

@@ -139,3 +139,30 @@ def test_a_long_refinement_says_how_long_after_its_second_step(capsys):
         progress(1)
         progress(2)
     assert "refining the light" not in capsys.readouterr().err
+
+
+def test_a_known_light_is_shown_beside_the_prediction_with_the_angle_between_their_suns(run, tiny_glossy, tmp_path,
+                                                                                       capsys):
+    """--true-light: the map the image was taken under goes into the overview and the report, with the angle between
+    the suns, which is the eval's (a map against itself: 0; a sun turned by 90 degrees about up: 90)."""
+    from dibrpp import conventions
+    import torch
+
+    d = conventions.equirect_directions(64, 128, dtype=torch.float64)
+    sun = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64) / 2 ** 0.5
+    sky = (0.5 + 200 * torch.exp(300 * ((d * sun).sum(-1, keepdim=True) - 1))).expand(64, 128, 3).float()
+    assert predict.sun_angle_deg(sky, sky) == pytest.approx(0.0, abs=1e-3)
+    assert predict.sun_angle_deg(torch.roll(sky, 32, 1), sky) == pytest.approx(90.0, abs=3.0)
+    write_exr(tmp_path / "sky.exr", sky)
+    image = next((tiny_glossy / "samples").glob("*/view_01.png"))
+    out = tmp_path / "pred"
+    assert predict.main(["--checkpoint", str(run), "--image", str(image), "--out", str(out), "--spp", "2",
+                         "--true-light", str(tmp_path / "sky.exr")]) == 0
+    material = json.loads((out / "material.json").read_text())
+    assert 0.0 <= material["sun_angle_deg"] <= 180.0 and material["true_light"] == str(tmp_path / "sky.exr")
+    assert "degrees from" in capsys.readouterr().err and "sun_angle_deg" in (out / "report.html").read_text()
+    (tmp_path / "bad.exr").write_text("not an image")
+    assert predict.main(["--checkpoint", str(run), "--image", str(image), "--out", str(tmp_path / "p2"),
+                         "--true-light", str(tmp_path / "bad.exr")]) == 2
+    assert capsys.readouterr().err.startswith("error: --true-light")
+    assert not (tmp_path / "p2").exists()  # refused before anything is written
