@@ -156,12 +156,15 @@ def read_image(path, linear: bool = True) -> np.ndarray:
     ``.exr``: linear as stored (RGB, RGBA, or greyscale Y / YA expanded to RGB). Anything else Pillow opens
     (PNG, JPEG, TIFF, ...): 8- or 16-bit, greyscale, palette, with or without alpha, scaled to [0, 1] by its
     own bit depth (a 16-bit greyscale PNG keeps its 65536 levels); colour sRGB-decoded to linear when
-    ``linear``, alpha as stored. An image too large for Pillow (a decompression bomb) is a :class:`DataError`.
+    ``linear``, alpha as stored (straight, as image editors write it). A floating-point image (a 32-bit float
+    greyscale TIFF) is linear as stored, like an EXR: neither decoded nor clipped. The pixels are turned as
+    the file's EXIF orientation says (a phone's JPEG shows upright). An image too large for Pillow (a
+    decompression bomb) is a :class:`DataError`.
     """
     if str(path).lower().endswith(".exr"):
         return _read_exr_colour(path)
-    arr = _read_raster(_require_file(path))
-    if linear:
+    arr, is_float = _read_raster(_require_file(path))
+    if linear and not is_float:
         from .conventions import srgb_to_linear
 
         rgb = srgb_to_linear(torch.from_numpy(np.ascontiguousarray(arr[..., :3]))).numpy()
@@ -180,20 +183,39 @@ def _read_exr_colour(path) -> np.ndarray:
     raise DataError(f"{path}: EXR has channels {sorted(letters)}; expected R, G, B (and A) or Y (and A)")
 
 
-def _read_raster(path: Path) -> np.ndarray:
-    """(H, W, 3 or 4) float32 in [0, 1] from a file Pillow opens, at the file's bit depth."""
+def _read_raster(path: Path) -> tuple[np.ndarray, bool]:
+    """((H, W, 3 or 4) float32, whether the file holds floating-point samples) from a file Pillow opens, at the
+    file's bit depth (in [0, 1] unless floating-point), upright as its EXIF orientation says."""
     from PIL import Image, UnidentifiedImageError
 
     try:
         wide = _read_png_16bit_colour(path)
-        if wide is not None:
-            return wide
         with Image.open(path) as im:
-            return _pillow_pixels(im)
+            orientation = _exif_orientation(im)
+            is_float = im.mode == "F"
+            arr = wide if wide is not None else _pillow_pixels(im)
+        return _upright(arr, orientation), is_float
     except Image.DecompressionBombError as e:
         raise DataError(f"{path}: too large to read ({str(e).split(',')[0]}); downscale it first") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as e:
         raise DataError(f"{path}: not a readable image ({e})") from e
+
+
+def _exif_orientation(im) -> int:
+    """The EXIF orientation tag (1: as stored; 2-8: mirrored and / or turned), 1 where there is none."""
+    try:
+        value = im.getexif().get(0x0112, 1)
+    except Exception:  # a broken EXIF block: the pixels as stored
+        return 1
+    return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+def _upright(arr: np.ndarray, orientation: int) -> np.ndarray:
+    """``arr`` (H, W, C) as ``PIL.ImageOps.exif_transpose`` turns an image of that EXIF orientation."""
+    turn = {1: lambda a: a, 2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+            5: lambda a: a.transpose(1, 0, 2), 6: lambda a: np.rot90(a, -1), 7: lambda a: np.rot90(a, 2).transpose(1, 0, 2),
+            8: lambda a: np.rot90(a, 1)}[orientation]
+    return np.ascontiguousarray(turn(arr))
 
 
 def _pillow_pixels(im) -> np.ndarray:

@@ -2,37 +2,50 @@
 
     python -m pipelines.predict --checkpoint runs/glossy/sg-seed0 --image photo.png --out pred/
 
-Writes into --out: ``mesh.obj`` + ``mesh.mtl`` + ``texture.png`` (opens textured in Blender),
-``envmap.exr`` (the predicted light as a world-frame equirect map), ``material.json`` and
-``novel_views.png`` (re-renderings from ``--views`` views around the object, light fixed in the world).
+Writes into --out: ``model.glb`` (one file: the mesh, its UVs, the albedo texture and a metallic-roughness
+material; opens in Blender, three.js and glTF viewers), ``mesh.obj`` + ``mesh.mtl`` + ``texture.png`` (the same
+mesh as OBJ), ``envmap.exr`` and ``envmap.hdr`` (the predicted light as a world-frame equirect map),
+``material.json`` and ``novel_views.png`` (re-renderings from ``--views`` views around the object, light fixed in
+the world). The files are written into a temporary folder and moved into --out together once all are written.
 
-The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits; or a linear EXR) needs an alpha
-channel (the object's mask), as the datasets have; an image without one is accepted only with
-``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent (the documented
-foreground extraction for renders on a flat background), or with ``--mask FILE`` (a grey or RGBA image of the same
-size: white, or opaque, is the object). Any size from 8 x 8 pixels is taken. The model reads an object's size in
+The image (PNG, JPEG, TIFF, ... read at its own bit depth, 8 or 16 bits, turned upright as its EXIF orientation
+says; a float TIFF or an EXR, linear) needs an alpha channel (the object's mask), as the datasets have. Alpha is
+straight, as image editors write it: a pixel's colour is the object's own colour, its alpha how much of the pixel
+the object covers (a premultiplied EXR, as renderers write it, reads the same way, its outline a little darker,
+as the datasets' views are read). A pixel is the object's where its alpha is above 0.5. An image without alpha
+is accepted only with ``--background R,G,B``: pixels within ``--tolerance`` of that colour become transparent
+(the documented foreground extraction for renders on a flat background), or with ``--mask FILE`` (a grey or RGBA
+image of the same size: white, or opaque, is the object); ``--mask`` on an image whose alpha already masks it is
+refused (an alpha that is opaque everywhere is no mask and is replaced). Any size from 8 x 8 pixels is taken. The model reads an object's size in
 the frame as its size and has no translation of its own, so the image is framed as the training views frame their
 object (``pipelines.model.framing``: its size and centroid, recorded in the run's ``camera.json``): ``--framing
 auto`` (the default) keeps an image whose object already sits as theirs do (a dataset's view) and crops and pads
 any other; ``object`` always re-frames, ``as-is`` never (it pads to a square). Then it is resized to the model's. Its radiance must be finite, non-negative and at most
 exp(12) ~ 1.6e5, the brightest light the model predicts (a scaled EXR is refused, not read as a brighter sun).
 Give a linear EXR where you have one: the model reads the input's full range, and a sun's reflection that an
-8-bit picture clips at 1 is where it finds the sun (docs/experiments.md, entry 13).
+8-bit picture clips at 1 is where it finds the sun (an 8-bit picture places the light about as well as a model
+trained on clipped input does).
 The input camera is an orbit camera looking at the object's centre: ``--azimuth``, ``--elevation``, ``--fov`` and
 ``--distance``, each the training set-up's (``camera.json``) unless given. The elevation sets which way is up in the
-predicted light; the field of view and distance set the perspective the shape is read with (a re-framed image
+predicted light; the azimuth places the camera around the object (0: its front, cars and heads facing +X; 90: its
+left side), which decides the side of the predicted shape the image colours, and turns the predicted light about
+the vertical (the light is given in the object's frame, in which the camera stands at that azimuth); the field of view and distance set the perspective the shape is read with (a re-framed image
 keeps the object's size in the frame as in training, whatever the photo's zoom).
 
 What a photo can give: the model has seen procedural cars (or heads) of its dataset, on their own, from one
 elevation and distance, under its env maps. A photo of a similar object, cut out, gives a shape, an albedo and a
 light of that kind; an 8-bit photo clips the highlights the light is read from, so an EXR of the view places the
-light better; other objects, clutter or shadows on the ground are outside what it learnt.
+light better; other objects, clutter or shadows on the ground are outside what it learnt. Cutting out a photo
+and choosing the camera: docs/photo.md.
 """
 from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -41,128 +54,27 @@ import torch
 
 from dibrpp import Cameras
 from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in, int_in, non_negative_float, unit_rgb)
-from dibrpp.display import display_image
-from dibrpp.io import DataError, atomic_path, read_image, write_exr, write_png, write_textured_obj
+from dibrpp.io import DataError, atomic_path, write_exr, write_png, write_textured_obj
 
 from .evaluation.metrics import dominant_direction
 from .evaluation.prediction_figure import OVERVIEW, REPORT, write_overview, write_report
+from .gltf import write_glb
 from .model import framing
-from .model.model_input import MAX_LOG_RADIANCE, encoder_input
+from .model.framing import resize_input
+from .model.model_input import encoder_input
+from .photo_input import read_input
 from .training.refine import MAX_STEPS, refine_light
 from .training.runs import load_camera, load_run, make_renderer, run_folder
 
-MIN_SIDE = 8  # pixels: a smaller image holds no object to speak of
-# The brightest light the model predicts (and the most its input decodes to): no light it can place explains
-# brighter pixels, so such an image is scaled (or corrupt), not lit by a brighter sun.
-MAX_RADIANCE = math.exp(MAX_LOG_RADIANCE)
 LONG_REFINEMENT_S = 30.0  # a refinement expected to take longer is announced with its estimate
 MAX_VIEWS, MAX_SPP = 72, 4096  # novel views (every 5 degrees) and their MC samples: more only fills the memory
+# an input camera outside these is said, not refused: degrees of field of view, times the training distance
+USUAL_FOV_DEG, USUAL_DISTANCE = (10.0, 100.0), (1 / 3, 10.0)
 
 
 def say(message: str) -> None:
     """What predict is doing, on stderr (stdout is the material's JSON)."""
     print(message, file=sys.stderr, flush=True)
-
-
-def read_input(path, background: tuple[float, float, float] | None, tolerance: float, mask=None) -> torch.Tensor:
-    """(H, W, 4) linear RGB + alpha of an image file, checked: big enough, with an object in it (see the module
-    doc for RGB inputs and ``mask``)."""
-    if Path(path).is_dir():
-        raise DataError(f"--image {path}: is a folder; --image takes one image file (PNG, JPEG, TIFF or EXR)")
-    img = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=True))).float()
-    height, width = img.shape[:2]
-    if min(height, width) < MIN_SIDE:
-        raise DataError(f"{path}: {width} x {height} pixels is too small; give an image of at least "
-                        f"{MIN_SIDE} x {MIN_SIDE} pixels showing the object")
-    check_radiance(path, img[..., :3])
-    if mask is not None:
-        img = torch.cat([img[..., :3], read_mask(mask, (height, width))], -1)
-    elif img.shape[-1] == 3:
-        img = torch.cat([img, foreground_mask(path, img, background, tolerance)], -1)
-    elif background is not None:
-        raise DataError(f"{path}: has an alpha channel, which is the object's mask; --background cuts a mask out of "
-                        "an image without one: drop --background (or the alpha)")
-    alpha = img[..., 3]
-    if not (torch.isfinite(alpha).all() and alpha.min() >= 0 and alpha.max() <= 1 + 1e-3):
-        raise DataError(f"{path}: alpha outside [0, 1] (min {float(alpha.min()):.3g}, max {float(alpha.max()):.3g}); "
-                        "alpha is the object's coverage: give a straight (not scaled) alpha")
-    img[..., 3] = alpha.clamp(0, 1)
-    if img[..., 3].max() <= 0:
-        raise DataError(f"{path}: the alpha channel is empty (no object)")
-    return img
-
-
-def read_mask(path, size: tuple[int, int]) -> torch.Tensor:
-    """(H, W, 1) the object's coverage from a mask image: its alpha where it has one, else its grey level."""
-    mask = torch.from_numpy(np.ascontiguousarray(read_image(path, linear=False))).float()
-    if tuple(mask.shape[:2]) != size:
-        raise DataError(f"--mask {path}: {mask.shape[1]} x {mask.shape[0]} pixels, the image {size[1]} x {size[0]}; "
-                        "give a mask of the image's size")
-    coverage = mask[..., 3] if mask.shape[-1] == 4 else mask[..., :3].mean(-1)
-    return coverage.clamp(0, 1).unsqueeze(-1)
-
-
-def check_radiance(path, rgb: torch.Tensor) -> None:
-    """Refuse colour that is no radiance the model could have seen: NaN / Inf (a float TIFF can hold them),
-    negative, or above :data:`MAX_RADIANCE`."""
-    finite = torch.isfinite(rgb)
-    if not finite.all():
-        raise DataError(f"{path}: {int((~finite).sum())} non-finite values (NaN/Inf); the file is corrupt")
-    if (rgb < 0).any():
-        raise DataError(f"{path}: {int((rgb < 0).sum())} negative values (min {float(rgb.min()):.3g}); radiance "
-                        "cannot be negative, clamp the image at 0")
-    peak = float(rgb.max())
-    if peak > MAX_RADIANCE:
-        raise DataError(f"{path}: radiance up to {peak:.3g}, above {MAX_RADIANCE:.3g} (exp({MAX_LOG_RADIANCE:g}), the "
-                        "brightest light the model predicts); the image looks scaled: give it in scene-linear units "
-                        "(a sun's reflection in the datasets is about 1e4)")
-
-
-def resize_input(img: torch.Tensor, size: int) -> torch.Tensor:
-    """(size, size, 4): ``img`` padded to a square (transparent) and resized by area averaging."""
-    resized = torch.nn.functional.interpolate(pad_to_square(img).permute(2, 0, 1)[None], size=(size, size),
-                                              mode="area")[0]
-    return resized.permute(1, 2, 0)
-
-
-def foreground_mask(path, rgb: torch.Tensor, background, tolerance: float) -> torch.Tensor:
-    """(H, W, 1): 1 where the pixel's sRGB colour is farther than ``tolerance`` from ``background``."""
-    if background is None:
-        raise DataError(f"{path}: no alpha channel; give the object's mask as alpha (RGBA PNG/EXR) or pass "
-                        "--background R,G,B (sRGB 0-1) to cut out a flat background")
-    distance = (display_image(rgb) - torch.tensor(background, dtype=rgb.dtype)).abs().amax(-1)
-    return (distance > tolerance).float().unsqueeze(-1)
-
-
-def pad_to_square(img: torch.Tensor) -> torch.Tensor:
-    """Transparent borders around the shorter side, so that resizing keeps the object's proportions."""
-    height, width = img.shape[:2]
-    side = max(height, width)
-    top, left = (side - height) // 2, (side - width) // 2
-    return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
-
-
-def frame_input(path, rgba: torch.Tensor, trained: dict, mode: str) -> torch.Tensor:
-    """The image framed for the model (``--framing``; ``trained``: the run's camera.json): as the training views
-    frame their object (object), as it is (as-is), or as it is unless its object's size or place differs from the
-    training views' beyond their spread (auto), each said where it matters."""
-    if "object_size" not in trained:
-        if mode == "object":
-            say(f"note: the run records no framing of its training views (trained before it was recorded); {path} "
-                "is used as framed")
-        return rgba
-    seen = framing.image_framing(rgba[..., 3])
-    like = framing.frames_like(seen, trained)
-    if mode == "object" or (mode == "auto" and not like):
-        if mode == "auto":
-            say(f"note: the object spans {seen['object_size'] / trained['object_size']:.2f}x the training views' size "
-                f"in {path}, centred at {seen['object_centre'][0]:.2f}, {seen['object_centre'][1]:.2f} (theirs "
-                f"{trained['object_centre'][0]:.2f}, {trained['object_centre'][1]:.2f}): re-framed as they frame it")
-        return framing.reframe(rgba, trained)
-    if not like:
-        say(f"warning: the object in {path} is framed unlike the training views' (size {seen['object_size']:.2f} of the "
-            f"side against {trained['object_size']:.2f}); the model reads its size as the car's: use --framing auto")
-    return rgba
 
 
 def unweld_for_uvs(verts: torch.Tensor, faces: torch.Tensor, face_uvs: torch.Tensor) -> torch.Tensor:
@@ -184,18 +96,24 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     loaded = load_run(run)
     config, model = loaded.config, loaded.model.to(device)
     size = model.config.image_size  # the side of the images the run trained on
-    trained = load_camera(run)
+    trained = checked_camera(run)
     setup = dict(distance=trained["distance"] if distance is None else distance,
                  elevation_deg=trained["elevation_deg"] if elevation is None else elevation,
                  fov_deg=trained["fov_deg"] if fov is None else fov)
+    warn_unusual_camera(setup, trained)
     orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
-    rgba = resize_input(frame_input(image, image_rgba, trained, framing_mode), size)
+    rgba = resize_input(framing.frame_input(image, image_rgba, trained, framing_mode, say), size)
     if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
         say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
             "the full range and places the light best from a linear EXR of the same view")
     say(f"predicting shape, texture, material and light from {image}")
     cam = orbit(azimuth, size)
     pred = model(encoder_input(rgba[None].to(device)), cam.to(device))
+    reach = float(pred.meshes().verts[0].norm(dim=-1).max())
+    if setup["distance"] <= reach:
+        raise DataError(f"--distance {setup['distance']:g}: the camera sits inside the predicted object, which reaches "
+                        f"{reach:.3g} from its centre (the training camera stood at {trained['distance']:g}); give a "
+                        "larger --distance")
     gain, t0 = torch.ones(1), time.perf_counter()
     if refine_steps:
         say(f"refining the light: {refine_steps} steps against the input view")
@@ -204,28 +122,48 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                                       make_renderer(config, seed=0, training=True, device=device, eager=True),
                                       refine_steps, on_step=progress)
     pred, gain = pred.to("cpu"), gain.cpu()  # written and rendered from here on the CPU
-    light = pred.light(cam.world_to_camera)
-    out.mkdir(parents=True, exist_ok=True)
-    mesh = pred.meshes()
-    write_png(out / "texture.png", pred.texture[0])
-    write_textured_obj(out / "mesh.obj", unweld_for_uvs(mesh.verts[0], mesh.faces, mesh.face_uvs), mesh.face_uvs,
-                       mesh.uvs, mesh.face_uvs, "texture.png")
-    write_exr(out / "envmap.exr", light.to_envmap(64, 128).image[0])
     material = dict(roughness=float(pred.roughness[0]), specular=float(pred.specular[0]),
                     metallic=float(pred.metallic[0]), shading=config.shading, checkpoint=str(run),
                     input=str(image), input_camera=dict(setup, azimuth_deg=azimuth), framing=framing_mode,
                     refine_steps=refine_steps,
                     albedo_gain=float(gain[0]), refine_seconds=round(time.perf_counter() - t0, 3) if refine_steps else 0.0)
+    with staged(out) as folder:
+        write_results(folder, pred, material, config, cam, orbit, rgba, views, spp, known, true_light)
+    say(f"wrote {out}/: {OVERVIEW} and {REPORT} (open it), {', '.join(OUTPUTS)}")
+    return material
+
+
+OUTPUTS = ("model.glb", "mesh.obj", "mesh.mtl", "texture.png", "envmap.exr", "envmap.hdr", "material.json",
+           "novel_views.png")
+
+
+def write_results(out: Path, pred, material: dict, config, cam: Cameras, orbit, rgba: torch.Tensor, views: int,
+                  spp: int, known: torch.Tensor | None, true_light: Path | None) -> None:
+    """Every output of :func:`predict` into ``out`` (see the module doc); ``material`` gains the sun's angle where
+    the true light is ``known``."""
+    from datagen.envmap_files import write_hdr
+
+    light = pred.light(cam.world_to_camera)
+    mesh = pred.meshes()
+    verts = unweld_for_uvs(mesh.verts[0], mesh.faces, mesh.face_uvs)
+    write_png(out / "texture.png", pred.texture[0])
+    write_textured_obj(out / "mesh.obj", verts, mesh.face_uvs, mesh.uvs, mesh.face_uvs, "texture.png")
+    write_glb(out / "model.glb", verts.numpy(), mesh.face_uvs.numpy(), mesh.uvs.numpy(),
+              (out / "texture.png").read_bytes(), material["roughness"], material["metallic"],
+              extras={"specular": material["specular"], "shading": material["shading"]})
     predicted_map = light.to_envmap(64, 128).image[0]
+    write_exr(out / "envmap.exr", predicted_map)
+    write_hdr(out / "envmap.hdr", predicted_map.clamp_min(0).numpy())
     if known is not None:
         material.update(true_light=str(true_light), sun_angle_deg=round(sun_angle_deg(predicted_map, known), 1))
         say(f"the predicted sun is {material['sun_angle_deg']:.0f} degrees from {true_light}'s")
     with atomic_path(out / "material.json") as tmp:
         tmp.write_text(json.dumps(material, indent=1))
+    size = rgba.shape[0]
     say(f"rendering {views} novel views at {2 * size} px ({config.shading}"
         + (f", {spp} spp" if config.shading == "mc" else "") + ")")
-    azimuths = azimuth + torch.arange(views) * (360.0 / views)
-    cams = orbit(azimuths, 2 * size)
+    azimuth = material["input_camera"]["azimuth_deg"]
+    cams = orbit(azimuth + torch.arange(views) * (360.0 / views), 2 * size)
     repeated = pred.select([0] * views)
     renderer = make_renderer(config, seed=0, spp=spp, device="cpu", eager=True)
     renders = renderer(repeated.meshes(), cams, repeated.material(),
@@ -234,15 +172,61 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
                        for i in range(views)], 1)
     write_png(out / "novel_views.png", strip)
     input_view = orbit(azimuth, 2 * size)
-    write_overview(out / OVERVIEW, f"{image.name}: {config.shading.upper()} model {run}", rgba,
-                   renderer.render_normals(pred.meshes(), input_view).image[0],
+    write_overview(out / OVERVIEW, f"{Path(material['input']).name}: {config.shading.upper()} model "
+                   f"{material['checkpoint']}", rgba, renderer.render_normals(pred.meshes(), input_view).image[0],
                    renderer.render_albedo(pred.meshes(), input_view, pred.material()).image[0],
                    predicted_map, list(renders),
                    None if known is None else (known, f"true light ({material['sun_angle_deg']:.0f}° between the suns)"))
     write_report(out, material)
-    say(f"wrote {out}/: {OVERVIEW} and {REPORT} (open it), mesh.obj, mesh.mtl, texture.png, envmap.exr, "
-        "material.json, novel_views.png")
-    return material
+
+
+class staged:
+    """``with staged(out) as folder``: a new folder beside ``out`` (inside it where it exists) to write into; when the
+    block succeeds its files move into ``out`` (made if missing) together, and the folder goes either way, so a
+    failure leaves ``out`` as it was."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+
+    def __enter__(self) -> Path:
+        parent = self.out if self.out.is_dir() else self.out.parent
+        parent.mkdir(parents=True, exist_ok=True)
+        self.folder = Path(tempfile.mkdtemp(prefix=f".{self.out.name or 'out'}.", suffix=".partial", dir=parent))
+        return self.folder
+
+    def __exit__(self, kind, *exc) -> None:
+        try:
+            if kind is None:
+                self.out.mkdir(parents=True, exist_ok=True)
+                for path in sorted(self.folder.iterdir()):
+                    os.replace(path, self.out / path.name)
+        finally:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def checked_camera(run: Path) -> dict:
+    """The run's camera.json (:func:`load_camera`), refused where it places no camera: a distance not above 0, an
+    elevation not strictly between -90 and 90 degrees, a field of view not strictly between 0 and 180."""
+    setup = load_camera(run)
+    bad = [f"{name} {setup[name]:g} ({what})" for name, ok, what in (
+        ("distance", setup["distance"] > 0, "a distance is above 0"),
+        ("elevation_deg", -90 < setup["elevation_deg"] < 90, "strictly between -90 and 90"),
+        ("fov_deg", 0 < setup["fov_deg"] < 180, "strictly between 0 and 180")) if not ok]
+    if bad:
+        raise DataError(f"{Path(run) / 'camera.json'}: {', '.join(bad)}; the run's camera set-up is corrupt: restore "
+                        "the file or retrain the run")
+    return setup
+
+
+def warn_unusual_camera(setup: dict, trained: dict) -> None:
+    """A warning naming a field of view or a distance far from any the model can have learnt from (see USUAL_*)."""
+    fov, ratio = setup["fov_deg"], setup["distance"] / trained["distance"]
+    if not USUAL_FOV_DEG[0] <= fov <= USUAL_FOV_DEG[1]:
+        say(f"warning: --fov {fov:g} degrees is outside {USUAL_FOV_DEG[0]:g}-{USUAL_FOV_DEG[1]:g} (the training views': "
+            f"{trained['fov_deg']:.1f}); the shape is read with a perspective unlike any it learnt")
+    if not USUAL_DISTANCE[0] <= ratio <= USUAL_DISTANCE[1]:
+        say(f"warning: --distance {setup['distance']:g} is {ratio:.2g} times the training camera's "
+            f"({trained['distance']:g}); the shape is read with a perspective unlike any it learnt")
 
 
 def read_true_light(path: Path) -> torch.Tensor:
@@ -304,9 +288,10 @@ def build_parser() -> Parser:
     ap.add_argument("--checkpoint", required=True, metavar="RUN",
                     help="a run folder (config.json + checkpoint.pt), or its checkpoint.pt")
     ap.add_argument("--image", required=True, metavar="FILE", help="the input image: PNG/JPEG/TIFF (sRGB) or EXR "
-                    "(linear), with the object's mask as alpha (or see --background)")
+                    "(linear), with the object's mask as straight alpha (or see --mask, --background)")
     ap.add_argument("--out", required=True, metavar="DIR", help="folder for the results (made if missing)")
-    ap.add_argument("--azimuth", type=finite_float, default=0.0, metavar="DEG", help="azimuth of the input camera")
+    ap.add_argument("--azimuth", type=finite_float, default=0.0, metavar="DEG",
+                    help="azimuth of the input camera around the object (0: its front; 90: its left side)")
     ap.add_argument("--elevation", type=float_in(-89.0, 89.0), metavar="DEG",
                     help="elevation of the input camera above the ground plane (default: the training data's)")
     ap.add_argument("--fov", type=float_in(1.0, 150.0), metavar="DEG",
@@ -319,7 +304,7 @@ def build_parser() -> Parser:
                          "as-is: pad it to a square as it is; auto: as-is where the object already sits about as in "
                          "the training views (a dataset's view), else object (default: auto)")
     ap.add_argument("--mask", metavar="FILE", help="the object's mask as an image of the input's size (white or opaque: "
-                    "the object), for an image without alpha")
+                    "the object; above 0.5 counts), for an image without alpha (or with one opaque everywhere)")
     ap.add_argument("--background", type=unit_rgb, metavar="R,G,B",
                     help="sRGB colour (0-1) of a flat background to cut out of an image without alpha")
     ap.add_argument("--tolerance", type=non_negative_float, default=0.05, metavar="FLOAT",
@@ -344,6 +329,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():
         ap.error("--device cuda: torch sees no CUDA device here; install a CUDA build of torch or use --device cpu")
+    if not args.out.strip():
+        ap.error("--out: expected a folder, got an empty string")
     try:
         run = run_folder(args.checkpoint)
         if args.mask is not None and args.background is not None:

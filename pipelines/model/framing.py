@@ -7,9 +7,13 @@ frames its object otherwise is read wrongly. A run stores how its training views
 ``camera.json``: ``object_size``, the median square root of the object's covered area over the image side (the
 measure of size that varies least with the view: 8 % over the glossy set's, against 18 % for the bounding box's
 longer side), and ``object_centre``, the median centroid of the covered pixels (row, column over the side).
-:func:`reframe` crops and pads an image to the square in which its object has that size and centroid.
+:func:`reframe` crops and pads an image to the square in which its object has that size and centroid;
+:func:`frame_input` decides whether an input image needs it, and :func:`resize_input` brings it to the model's side.
+Images are linear RGBA with straight alpha (colour unscaled by coverage).
 """
 from __future__ import annotations
+
+from typing import Callable
 
 import torch
 
@@ -46,7 +50,11 @@ def image_framing(alpha: torch.Tensor) -> dict:
     a square around its centre)."""
     height, width = alpha.shape
     side = max(height, width)
-    row, col, size = object_extent(alpha)
+    extent = object_extent(alpha)
+    if extent is None:
+        raise ValueError(f"no pixel's alpha is above {COVERED}, where a pixel counts as the object's; give the object "
+                         "a mask that is opaque (1) where it covers the pixel")
+    row, col, size = extent
     return {"object_size": size / side, "object_centre": [(row + (side - height) / 2) / side,
                                                           (col + (side - width) / 2) / side]}
 
@@ -70,3 +78,48 @@ def reframe(rgba: torch.Tensor, trained: dict) -> torch.Tensor:
     cols = slice(max(left, 0), min(left + side, rgba.shape[1]))
     window[rows.start - top:rows.stop - top, cols.start - left:cols.stop - left] = rgba[rows, cols]
     return window
+
+
+def frame_input(path, rgba: torch.Tensor, trained: dict, mode: str, say: Callable[[str], None] = print) -> torch.Tensor:
+    """The image framed for the model (``mode``: predict's ``--framing``; ``trained``: the run's camera.json): as the
+    training views frame their object (object), as it is (as-is), or as it is unless its object's size or place
+    differs from the training views' beyond their spread (auto), each said through ``say`` where it matters."""
+    if "object_size" not in trained:
+        if mode == "object":
+            say(f"note: the run records no framing of its training views (trained before it was recorded); {path} "
+                "is used as framed")
+        return rgba
+    seen = image_framing(rgba[..., 3])
+    like = frames_like(seen, trained)
+    if mode == "object" or (mode == "auto" and not like):
+        if mode == "auto":
+            say(f"note: the object spans {seen['object_size'] / trained['object_size']:.2f}x the training views' size "
+                f"in {path}, centred at {seen['object_centre'][0]:.2f}, {seen['object_centre'][1]:.2f} (theirs "
+                f"{trained['object_centre'][0]:.2f}, {trained['object_centre'][1]:.2f}): re-framed as they frame it")
+        return reframe(rgba, trained)
+    if not like:
+        say(f"warning: the object in {path} is framed unlike the training views' (size {seen['object_size']:.2f} of the "
+            f"side against {trained['object_size']:.2f}); the model reads its size as the car's: use --framing auto")
+    return rgba
+
+
+def pad_to_square(img: torch.Tensor) -> torch.Tensor:
+    """Transparent borders around the shorter side, so that resizing keeps the object's proportions."""
+    height, width = img.shape[:2]
+    side = max(height, width)
+    top, left = (side - height) // 2, (side - width) // 2
+    return torch.nn.functional.pad(img, (0, 0, left, side - width - left, top, side - height - top))
+
+
+def resize_input(img: torch.Tensor, size: int) -> torch.Tensor:
+    """(size, size, 4): straight-alpha ``img`` padded to a square (transparent) and resized by area averaging of
+    its premultiplied colour, so that the colour under transparent pixels (any, in a straight-alpha file) does not
+    bleed into the object's outline."""
+    square = pad_to_square(img)
+    alpha = square[..., 3:]
+    premultiplied = torch.cat([square[..., :3] * alpha, alpha], -1)
+    resized = torch.nn.functional.interpolate(premultiplied.permute(2, 0, 1)[None], size=(size, size), mode="area")[0]
+    resized = resized.permute(1, 2, 0)
+    coverage = resized[..., 3:]
+    colour = torch.where(coverage > 0, resized[..., :3] / coverage.clamp_min(1e-12), torch.zeros_like(resized[..., :3]))
+    return torch.cat([colour, coverage], -1)

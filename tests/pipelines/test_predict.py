@@ -19,6 +19,15 @@ def run(tiny_glossy, tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def predicted(run, tiny_glossy, tmp_path_factory):
+    """predict's outputs for one of the tiny set's views."""
+    out = tmp_path_factory.mktemp("predicted") / "pred"
+    image = next((tiny_glossy / "samples").glob("*/view_01.png"))
+    assert predict.main(["--checkpoint", str(run), "--image", str(image), "--out", str(out), "--spp", "2"]) == 0
+    return out
+
+
 def test_predict_writes_textured_mesh_envmap_material_and_views(run, tiny_glossy, tmp_path, capsys):
     image = next((tiny_glossy / "samples").glob("*/view_01.png"))
     big = tmp_path / "big.png"
@@ -166,3 +175,97 @@ def test_a_known_light_is_shown_beside_the_prediction_with_the_angle_between_the
                          "--true-light", str(tmp_path / "bad.exr")]) == 2
     assert capsys.readouterr().err.startswith("error: --true-light")
     assert not (tmp_path / "p2").exists()  # refused before anything is written
+
+
+# ----------------------------------------------------------------------------- straight alpha
+
+def test_the_shipped_photo_stores_straight_alpha():
+    """examples/car_photo.png is the EXR's view with straight alpha: at the silhouette its colour is the car's (the
+    EXR's premultiplied colour over alpha), not darkened toward 0 as alpha goes to 0."""
+    from pathlib import Path
+
+    examples = Path(__file__).resolve().parents[2] / "examples"
+    png, exr = read_image(examples / "car_photo.png"), read_exr(examples / "car_photo.exr", "RGBA")
+    alpha = exr[..., 3]
+    assert np.abs(png[..., 3] - alpha).max() <= 0.5 / 255 + 1e-6
+    edge, inside = (alpha > 0.02) & (alpha < 0.5), alpha > 0.999
+    straight = exr[..., :3] / np.maximum(alpha, 1e-6)[..., None]
+    unclipped = edge & (straight.max(-1) < 1)
+    assert unclipped.sum() > 100
+    assert np.abs(png[unclipped][:, :3] - straight[unclipped]).max() < 0.02  # 8-bit sRGB steps at these levels
+    assert np.median(png[edge][:, :3].sum(-1)) > 0.3 * np.median(png[inside][:, :3].sum(-1))
+
+
+def test_the_colour_under_transparent_pixels_does_not_bleed_into_the_resized_input():
+    """Straight alpha leaves a transparent pixel's colour free (white in one editor, black in another): resizing
+    averages premultiplied colour, so the outline reads the same either way, and an object's own colour stays."""
+    import torch
+
+    def image(under):
+        rgba = torch.zeros(64, 64, 4)
+        rgba[..., :3] = under
+        rgba[16:48, 16:48] = torch.tensor([0.6, 0.2, 0.1, 1.0])
+        rgba[16:48, 15, :3], rgba[16:48, 15, 3] = torch.tensor([0.6, 0.2, 0.1]), 0.5  # a half-covered column
+        return rgba
+
+    white, black = predict.resize_input(image(1.0), 16), predict.resize_input(image(0.0), 16)
+    assert torch.allclose(white, black, atol=1e-6)
+    covered = white[..., 3] > 0
+    assert torch.allclose(white[covered][:, :3], torch.tensor([0.6, 0.2, 0.1]).expand(int(covered.sum()), 3), atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- one file to open elsewhere
+
+def test_model_glb_holds_the_mesh_uvs_texture_and_material(predicted):
+    """model.glb, read back by trimesh: the OBJ's mesh (turned to glTF's +Y up) with its UVs, the albedo image, and
+    the predicted roughness and metallic; envmap.hdr is envmap.exr in Radiance RGBE."""
+    from datagen.envmap_files import read_envmap_file
+
+    obj = trimesh.load(predicted / "mesh.obj", process=False)
+    scene = trimesh.load(predicted / "model.glb", process=False)
+    (glb,) = scene.geometry.values()
+    assert len(glb.faces) == len(obj.faces) == 1280 and len(glb.vertices) == len(obj.vertices)
+    x, y, z = np.asarray(obj.vertices).T
+    assert np.allclose(glb.vertices, np.stack([x, z, -y], -1), atol=1e-5)
+    assert np.array_equal(glb.faces, obj.faces)
+    assert np.allclose(glb.visual.uv, obj.visual.uv, atol=1e-6)  # trimesh reads glTF's v back into OBJ's
+    material = json.loads((predicted / "material.json").read_text())
+    pbr = glb.visual.material
+    assert pbr.roughnessFactor == pytest.approx(material["roughness"], abs=1e-6)
+    assert pbr.metallicFactor == pytest.approx(material["metallic"], abs=1e-6)
+    texture = np.asarray(Image.open(predicted / "texture.png").convert("RGB"))
+    assert np.array_equal(np.asarray(pbr.baseColorTexture.convert("RGB")), texture)
+    exr, hdr = read_exr(predicted / "envmap.exr"), read_envmap_file(predicted / "envmap.hdr")
+    assert hdr.shape == exr.shape and np.allclose(hdr, exr, rtol=0.02, atol=1e-3)
+
+
+BLENDER_READS_THE_GLB = """
+import sys, bpy
+bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.import_scene.gltf(filepath=sys.argv[1])
+(obj,) = [o for o in bpy.context.scene.objects if o.type == "MESH"]
+nodes = obj.active_material.node_tree.nodes
+(bsdf,) = [n for n in nodes if n.type == "BSDF_PRINCIPLED"]
+base = bsdf.inputs["Base Color"]
+linked = base.is_linked and base.links[0].from_node.type == "TEX_IMAGE" and base.links[0].from_node.image is not None
+print("RESULT", len(obj.data.polygons), bsdf.inputs["Roughness"].default_value, bsdf.inputs["Metallic"].default_value,
+      linked, len(obj.data.uv_layers))
+"""
+
+
+def test_blender_imports_model_glb_with_its_texture_and_material(predicted):
+    """Blender's own glTF importer (in a process of its own, as datagen runs bpy): a Principled BSDF with the predicted
+    roughness and metallic, its Base Color fed by an image texture, and the mesh's UV layer."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("bpy")
+    r = subprocess.run([sys.executable, "-c", BLENDER_READS_THE_GLB, str(predicted / "model.glb")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (line,) = [line for line in r.stdout.splitlines() if line.startswith("RESULT")]
+    _, faces, roughness, metallic, linked, uv_layers = line.split()
+    material = json.loads((predicted / "material.json").read_text())
+    assert int(faces) == 1280 and linked == "True" and int(uv_layers) == 1
+    assert float(roughness) == pytest.approx(material["roughness"], abs=1e-5)
+    assert float(metallic) == pytest.approx(material["metallic"], abs=1e-5)
