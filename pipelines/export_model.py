@@ -6,10 +6,14 @@ Writes into --out a run folder that ``pipelines.predict`` and ``pipelines.evalua
 ``checkpoint.pt`` (the model's weights in half precision, no optimizer state: a fifth of the run's checkpoint),
 ``config.json`` and ``camera.json`` as trained, ``metrics.json`` (the shipped weights evaluated on the test split of
 the run's dataset as ``make eval`` evaluates, ~1 min) and ``MODEL_CARD.md``: the data, the recipe, the code's
-commit, those metrics and the command that retrains it.
+commit, those metrics and the command that retrains it. The model is built in a temporary folder beside --out and
+its files move into --out once all are written: a failed export (the run's dataset missing, say) leaves a model
+already in --out as it was. --out may be neither the run folder nor inside it. The export is a model, not a
+prediction: ``pipelines.predict`` with it writes the mesh, textures and ``model.glb``.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import subprocess
@@ -23,6 +27,7 @@ from dibrpp.formatting import format_number, markdown_table
 from dibrpp.io import DataError, atomic_path
 
 from .evaluation.summary import CONSTANT_REFERENCES
+from .predict import staged
 from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run
 from .training.runs import (CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_camera, load_run, read_checkpoint, read_json,
                             run_folder)
@@ -95,43 +100,67 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         "view places the light better (docs/evaluation.md, prediction on your own image).", ""])
 
 
+def check_out_beside_run(run: Path, out: Path) -> None:
+    """A :class:`DataError` where ``out`` is the run folder or inside it (the export would overwrite the run's own
+    checkpoint with its half-precision copy)."""
+    run_at, out_at = Path(run).resolve(), Path(out).resolve()
+    if out_at == run_at or run_at in out_at.parents:
+        where = "is the run folder" if out_at == run_at else f"is inside the run folder {run}"
+        raise DataError(f"--out {out}: {where}, whose checkpoint the export would overwrite; give the model a folder of "
+                        "its own beside the run (e.g. models/<name>)")
+
+
 def export(run: Path, out: Path, retrain: str, commit: str | None = None) -> Path:
+    check_out_beside_run(run, out)
     loaded = load_run(run)  # refuses a broken run before anything is written
     state = read_checkpoint(run / CHECKPOINT)
     parameters = {name for name, _ in loaded.model.named_parameters()}
     shipped = {"model": half_precision(state["model"], parameters), "model_config": state["model_config"],
                "iteration": state["iteration"], "config": state.get("config")}
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / CHECKPOINT) as tmp:
-        torch.save(shipped, tmp)
-    for name in (CONFIG, CAMERA):
-        shutil.copyfile(run / name, out / name)
-    print(f"evaluating the shipped weights in {out} on the test split of {loaded.config.dataset}", flush=True)
-    metrics, _ = evaluate_run(out, eval_spp=EVAL_SPP, view_stride=EVAL_VIEW_STRIDE)
-    with atomic_path(out / METRICS) as tmp:
-        tmp.write_text(json.dumps(metrics, indent=1))
-    summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}
-    camera = {**load_camera(run), "image_size": loaded.model.config.image_size}
-    card = model_card(out.name, loaded.config.to_dict(), camera, metrics, loaded.iteration,
-                      summary.get("seconds"), commit or git_commit(), retrain)
-    with atomic_path(out / CARD) as tmp:
-        tmp.write_text(card)
+    with staged(out) as folder:  # every file in place at once, or none
+        with atomic_path(folder / CHECKPOINT) as tmp:
+            torch.save(shipped, tmp)
+        for name in (CONFIG, CAMERA):
+            shutil.copyfile(run / name, folder / name)
+        print(f"evaluating the shipped weights for {out} on the test split of {loaded.config.dataset}", flush=True)
+        metrics, _ = evaluate_run(folder, eval_spp=EVAL_SPP, view_stride=EVAL_VIEW_STRIDE)
+        with atomic_path(folder / METRICS) as tmp:
+            tmp.write_text(json.dumps(metrics, indent=1))
+        summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}
+        camera = {**load_camera(run), "image_size": loaded.model.config.image_size}
+        card = model_card(Path(out).resolve().name, loaded.config.to_dict(), camera, metrics, loaded.iteration,
+                          summary.get("seconds"), commit or git_commit(), retrain)
+        with atomic_path(folder / CARD) as tmp:
+            tmp.write_text(card)
     return out
+
+
+def folder(text: str) -> Path:
+    """An argument type: a folder's path (an empty string would mean the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a folder, got an empty string")
+    return Path(text)
 
 
 def main(argv=None) -> int:
     ap = Parser(prog="python -m pipelines.export_model", description=__doc__)
-    ap.add_argument("--run", required=True, type=Path, metavar="DIR", help="a trained run folder")
-    ap.add_argument("--out", required=True, type=Path, metavar="DIR", help="the model's folder (made if missing)")
+    ap.add_argument("--run", required=True, type=folder, metavar="DIR", help="a trained run folder")
+    ap.add_argument("--out", required=True, type=folder, metavar="DIR",
+                    help="the model's folder (made if missing; not the run folder nor inside it)")
     ap.add_argument("--retrain", default="", metavar="COMMAND", help="the command that retrains it, for the card")
     ap.add_argument("--commit", metavar="SHA", help="the code's commit, for the card (default: this checkout's)")
     args = ap.parse_args(argv)
     try:
         check_output_folder("--out", args.out)
         run_folder(args.run)  # a missing or broken run: said before anything is written
+        check_out_beside_run(args.run, args.out)
         out = export(args.run, args.out, args.retrain or f"python -m pipelines.train --out {args.run}", args.commit)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the disk filled up, or a folder went away while exporting: --out is as it was
+        print(f"error: --out {args.out}: cannot write the model ({e}); free space or choose another folder",
+              file=sys.stderr)
         return 2
     size = (out / CHECKPOINT).stat().st_size / 2 ** 20
     print(f"wrote {out}/: {CHECKPOINT} ({size:.1f} MiB), {CONFIG}, {CAMERA}, {METRICS}, {CARD}")

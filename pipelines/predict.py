@@ -225,7 +225,7 @@ def warn_unusual_camera(setup: dict, trained: dict) -> None:
         say(f"warning: --fov {fov:g} degrees is outside {USUAL_FOV_DEG[0]:g}-{USUAL_FOV_DEG[1]:g} (the training views': "
             f"{trained['fov_deg']:.1f}); the shape is read with a perspective unlike any it learnt")
     if not USUAL_DISTANCE[0] <= ratio <= USUAL_DISTANCE[1]:
-        say(f"warning: --distance {setup['distance']:g} is {ratio:.2g} times the training camera's "
+        say(f"warning: --distance {setup['distance']:g} is {ratio:.3g} times the training camera's "
             f"({trained['distance']:g}); the shape is read with a perspective unlike any it learnt")
 
 

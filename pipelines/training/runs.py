@@ -35,6 +35,7 @@ from ..model.encoder import MODEL_VERSION, Encoder, ModelConfig
 from ..model.model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
+MAX_TEMPLATE_SUBDIVISIONS = 6  # 40962 template vertices; each level more quadruples them
 # the learned space of env maps that light_head "space" decodes (python -m pipelines.light_space; make light-space)
 LIGHT_SPACE = Path(__file__).resolve().parents[2] / "models" / "light-space"
 PIXEL_NORMALS = "pixel_normals.pt"  # variant pixel-normals: the network fitted before the model trains
@@ -161,8 +162,11 @@ def read_checkpoint(path: Path) -> dict:
         state = torch.load(path, weights_only=True, map_location="cpu")  # a run trained on a GPU reads anywhere
     except FileNotFoundError:
         raise DataError(f"{path}: no checkpoint") from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, ValueError) as e:
+    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, ValueError, KeyError, IndexError,
+            TypeError, AttributeError) as e:  # a text file or another format: torch.load's errors vary
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if isinstance(e, (KeyError, IndexError, TypeError, AttributeError)):
+            first = "not a file torch.save wrote"
         raise DataError(f"{path}: unreadable checkpoint ({first}); it may be truncated or not a dibrpp "
                         "checkpoint: retrain the run, or resume it from an intact copy") from None
     if not isinstance(state, dict) or not {"model", "iteration"} <= set(state):
@@ -176,16 +180,34 @@ def load_checkpoint(path: Path) -> tuple[dict, Encoder]:
     if "model_config" not in state:
         raise DataError(f"{path} was written by an older version of the model (no model configuration saved with "
                         "it); retrain it, e.g. `make train-glossy`")
+    saved, weights = state["model_config"], state["model"]
+    if not isinstance(saved, dict) or not isinstance(weights, dict):
+        wrong, value = ("model configuration", saved) if not isinstance(saved, dict) else ("weights", weights)
+        raise DataError(f"{path}: the {wrong} is a {type(value).__name__}, not a mapping; not a dibrpp checkpoint: "
+                        "retrain the run or restore a copy")
+    subdivisions = saved.get("template_subdivisions", 3)
+    if not isinstance(subdivisions, int) or not 0 <= subdivisions <= MAX_TEMPLATE_SUBDIVISIONS:
+        raise DataError(f"{path}: template_subdivisions {subdivisions!r}, expected an integer in "
+                        f"0..{MAX_TEMPLATE_SUBDIVISIONS} (each level quadruples the template's faces)")
     try:
-        saved = state["model_config"]
-        weights = state["model"]
         if isinstance(saved, dict) and saved.get("version") != MODEL_VERSION:
             saved, weights = earlier_model_config(saved, MODEL_VERSION), earlier_state_dict(weights)
         model = Encoder(ModelConfig.from_dict(saved))
         model.load_state_dict(weights)
-    except (ValueError, RuntimeError, TypeError) as e:
+    except (ValueError, RuntimeError, TypeError, AttributeError, KeyError) as e:
         raise DataError(f"{path}: {str(e).splitlines()[0]}") from e
+    _check_template(path, model)
     return state, model
+
+
+def _check_template(path: Path, model: Encoder) -> None:
+    """The template mesh the checkpoint holds indexes its own vertices and UVs (a corrupt index would fail deep in
+    rendering)."""
+    for name, index, count in (("faces", model.faces, model.template_dirs.shape[-2]),
+                               ("face_uvs", model.face_uvs, model.uvs.shape[-2])):
+        if index.numel() and (int(index.min()) < 0 or int(index.max()) >= count):
+            raise DataError(f"{path}: the template's {name} index {int(index.min())}..{int(index.max())}, outside "
+                            f"its {count} entries; the checkpoint is corrupt: retrain the run or restore a copy")
 
 
 def checkpoint_digest(run: Path) -> str:

@@ -1,5 +1,6 @@
 """Prediction on a user's image with a (smoke) trained run: files that open elsewhere, clear errors."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -182,8 +183,6 @@ def test_a_known_light_is_shown_beside_the_prediction_with_the_angle_between_the
 def test_the_shipped_photo_stores_straight_alpha():
     """examples/car_photo.png is the EXR's view with straight alpha: at the silhouette its colour is the car's (the
     EXR's premultiplied colour over alpha), not darkened toward 0 as alpha goes to 0."""
-    from pathlib import Path
-
     examples = Path(__file__).resolve().parents[2] / "examples"
     png, exr = read_image(examples / "car_photo.png"), read_exr(examples / "car_photo.exr", "RGBA")
     alpha = exr[..., 3]
@@ -269,3 +268,133 @@ def test_blender_imports_model_glb_with_its_texture_and_material(predicted):
     assert int(faces) == 1280 and linked == "True" and int(uv_layers) == 1
     assert float(roughness) == pytest.approx(material["roughness"], abs=1e-5)
     assert float(metallic) == pytest.approx(material["metallic"], abs=1e-5)
+
+
+# ----------------------------------------------------------------------------- bad input: one error line, or read right
+
+def error_line(code, err: str) -> str:
+    """The one ``error:`` line of a run that failed after saying what it did (exit status 2, no traceback)."""
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def rgba_png(path, alpha: float = 1.0, size: int = 24):
+    rgba = np.zeros((size, size, 4), np.uint8)
+    rgba[6:18, 6:18] = 200, 60, 40, round(255 * alpha)
+    Image.fromarray(rgba).save(path)
+    return path
+
+
+@pytest.mark.parametrize("case", ["grey mask", "red mask", "semi-transparent"])
+def test_a_mask_never_above_one_half_is_refused_saying_where_a_pixel_counts(fake_run, tmp_path, capsys, case):
+    mask = np.zeros((24, 24, 3), np.uint8)
+    mask[6:18, 6:18] = (255, 0, 0) if case == "red mask" else (127, 127, 127)  # 50 % grey in 8 bits
+    Image.fromarray(mask).save(tmp_path / "mask.png")
+    Image.fromarray(np.full((24, 24, 3), 90, np.uint8)).save(tmp_path / "photo.png")
+    extra = ["--mask", str(tmp_path / "mask.png")] if "mask" in case else []
+    image = rgba_png(tmp_path / "half.png", 0.4) if case == "semi-transparent" else tmp_path / "photo.png"
+    code = predict.main(["--checkpoint", str(fake_run), "--image", str(image), "--out", str(tmp_path / "p"), *extra])
+    line = one_error(code, capsys.readouterr().err)
+    assert "never above 0.5, where a pixel counts as the object's" in line
+    assert not (tmp_path / "p").exists()
+
+
+def test_a_mask_over_an_alpha_is_refused_and_over_an_opaque_alpha_taken(fake_run, tmp_path, capsys):
+    mask = np.zeros((24, 24), np.uint8)
+    mask[4:20, 4:20] = 255
+    Image.fromarray(mask).save(tmp_path / "mask.png")
+    code = predict.main(["--checkpoint", str(fake_run), "--image", str(rgba_png(tmp_path / "cut.png")), "--out",
+                         str(tmp_path / "p"), "--mask", str(tmp_path / "mask.png")])
+    assert "has an alpha channel, which is the object's mask; --mask" in one_error(code, capsys.readouterr().err)
+    opaque = np.full((24, 24, 4), 255, np.uint8)
+    Image.fromarray(opaque).save(tmp_path / "opaque.png")
+    rgba = predict.read_input(tmp_path / "opaque.png", None, 0.05, mask=tmp_path / "mask.png")
+    assert float(rgba[..., 3].sum()) == 16 * 16
+
+
+def test_a_jpeg_is_turned_upright_and_a_float_tiff_read_linear_unclipped(tmp_path):
+    from PIL import ImageOps
+
+    rgb = np.full((20, 40, 3), 255, np.uint8)
+    rgb[2:8, 2:10] = 0  # a dark patch at the top left of the stored pixels
+    im = Image.fromarray(rgb)
+    exif = im.getexif()
+    exif[0x0112] = 6  # shown turned 90 degrees clockwise
+    im.save(tmp_path / "phone.jpg", exif=exif, quality=95)
+    upright = np.asarray(ImageOps.exif_transpose(Image.open(tmp_path / "phone.jpg")), np.float32) / 255
+    seen = read_image(tmp_path / "phone.jpg", linear=False)
+    assert seen.shape == (40, 20, 3) and np.abs(seen - upright).max() < 1e-6 and seen[3:8, 13:17].max() < 0.2
+    grey = np.zeros((16, 16), np.float32)
+    grey[4:12, 4:12] = 3.5  # linear radiance above 1
+    Image.fromarray(grey, "F").save(tmp_path / "hdr.tif")
+    rgba = predict.read_input(tmp_path / "hdr.tif", (0.0, 0.0, 0.0), 0.05)
+    assert float(rgba[8, 8, 0]) == pytest.approx(3.5) and float(rgba[..., 3].sum()) == 64
+
+
+@pytest.mark.parametrize("damage, said", [
+    ("text", "unreadable checkpoint (not a file torch.save wrote)"),
+    ("faces", "the template's faces index 0..99999, outside its 642 entries"),
+    ("list", "the model configuration is a list, not a mapping"),
+    ("subdivisions", "template_subdivisions 11, expected an integer in 0..6"),
+])
+def test_a_damaged_checkpoint_is_one_error_naming_it(run, tiny_glossy, tmp_path, capsys, damage, said):
+    import shutil
+
+    import torch
+
+    copy = Path(shutil.copytree(run, tmp_path / "run"))
+    state = torch.load(copy / "checkpoint.pt", weights_only=True)
+    if damage == "faces":
+        state["model"]["faces"][0, 0] = 99999
+    elif damage == "list":
+        state["model_config"] = list(state["model_config"].items())
+    elif damage == "subdivisions":
+        state["model_config"]["template_subdivisions"] = 11
+    torch.save(state, copy / "checkpoint.pt")
+    if damage == "text":
+        (copy / "checkpoint.pt").write_text("a note, not weights\n")
+    image = next((tiny_glossy / "samples").glob("*/view_01.png"))
+    code = predict.main(["--checkpoint", str(copy), "--image", str(image), "--out", str(tmp_path / "p")])
+    line = error_line(code, capsys.readouterr().err)
+    assert str(copy / "checkpoint.pt") in line and said in line and not (tmp_path / "p").exists()
+
+
+def test_cameras_that_place_nothing_are_refused_and_unusual_ones_named(run, tiny_glossy, tmp_path, capsys):
+    import shutil
+
+    image = str(next((tiny_glossy / "samples").glob("*/view_01.png")))
+    copy = Path(shutil.copytree(run, tmp_path / "run"))
+    camera = json.loads((copy / "camera.json").read_text())
+    (copy / "camera.json").write_text(json.dumps({**camera, "distance": -60}))
+    code = predict.main(["--checkpoint", str(copy), "--image", image, "--out", str(tmp_path / "a")])
+    assert f"{copy / 'camera.json'}: distance -60 (a distance is above 0)" in error_line(code, capsys.readouterr().err)
+    code = predict.main(["--checkpoint", str(run), "--image", image, "--out", str(tmp_path / "b"), "--distance", "1"])
+    assert "--distance 1: the camera sits inside the predicted object" in error_line(code, capsys.readouterr().err)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(SystemExit) as exit_:
+        predict.main(["--checkpoint", str(run), "--image", image, "--out", ""])
+    assert "--out: expected a folder, got an empty string" in error_line(exit_.value.code, capsys.readouterr().err)
+    assert predict.main(["--checkpoint", str(run), "--image", image, "--out", str(tmp_path / "c"), "--fov", "5",
+                         "--distance", "6000", "--views", "1", "--spp", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: --fov 5 degrees is outside 10-100" in err and "warning: --distance 6000 is 100 times" in err
+
+
+def test_a_late_failure_leaves_an_earlier_result_as_it_was(run, tiny_glossy, tmp_path, capsys, monkeypatch):
+    """The outputs move into --out together: a failure while writing the last of them (a full disk, here made to
+    happen at the overview) leaves the earlier result's files as they were and adds none."""
+    image = str(next((tiny_glossy / "samples").glob("*/view_01.png")))
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "material.json").write_text('{"roughness": "earlier"}')
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(predict, "write_overview", full_disk)
+    code = predict.main(["--checkpoint", str(run), "--image", image, "--out", str(out), "--spp", "1", "--views", "1"])
+    assert "No space left on device" in error_line(code, capsys.readouterr().err)
+    assert sorted(p.name for p in out.iterdir()) == ["material.json"]
+    assert (out / "material.json").read_text() == '{"roughness": "earlier"}'
+    assert [p.name for p in tmp_path.iterdir()] == ["pred"]  # no temporary folder left
