@@ -199,7 +199,9 @@ def make_image(kind: str, folder: Path) -> tuple[Path, np.ndarray | None]:
         return folder / "in.exr", None
     if kind in ("grey16", "grey-alpha16", "rgb16", "rgba16"):
         channels = {"grey16": [0], "grey-alpha16": [0, 3], "rgb16": [0, 1, 2], "rgba16": [0, 1, 2, 3]}[kind]
-        words = rgba[..., channels].astype(np.uint16) * 257 + np.arange(24, dtype=np.uint16)[:, None, None]
+        levels = rgba[..., channels].astype(np.int64) * 257
+        rows = np.arange(24)[:, None, None]  # a level per row, below the top one where it is 65535 (opaque)
+        words = np.where(levels == 65535, levels - rows, levels + rows).astype(np.uint16)
         write_png16(folder / f"{kind}.png", words)
         expect = words / 65535.0
         if len(channels) <= 2:  # greyscale reads as RGB
