@@ -21,8 +21,7 @@ def run(tiny_glossy, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def predicted(run, tiny_glossy, tmp_path_factory):
-    """predict's outputs for one of the tiny set's views."""
+def predicted(run, tiny_glossy, tmp_path_factory):  # predict's outputs for one of the tiny set's views
     out = tmp_path_factory.mktemp("predicted") / "pred"
     image = next((tiny_glossy / "samples").glob("*/view_01.png"))
     assert predict.main(["--checkpoint", str(run), "--image", str(image), "--out", str(out), "--spp", "2"]) == 0
