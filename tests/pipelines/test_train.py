@@ -536,18 +536,31 @@ def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
 HOUSE_REFERENCE = Path(__file__).parent / "data" / "default_models_before_the_house_change.json"
 
 
+def _module_norms(norms: dict) -> dict:
+    """Each top-level module's norm (the root of the sum of its tensors' squared norms), from per-tensor norms."""
+    squares: dict = {}
+    for name, norm in norms.items():
+        module = name.split(".")[0]
+        squares[module] = squares.get(module, 0.0) + norm ** 2
+    return {module: total ** 0.5 for module, total in squares.items()}
+
+
 @pytest.mark.parametrize("shading", ["sg", "mc", "sh", "sh-sg"])
 def test_the_default_models_train_as_they_did_before_the_retired_experiments_left(tiny_glossy, tmp_path, shading):
     """Removing the losing experiments' branches left the default path as it was: each default model trained for 6
-    iterations at one thread has the architecture, the loss curve and the weight norms it had before (recorded
-    again only where the default itself changed: its light's sky and ground, entry 43; its held F0, entry 55).
+    iterations at one thread has the architecture, the loss curve and the module norms it had before (recorded
+    again only where the default itself changed: its light's sky and ground; its held F0).
 
-    Compared only in quantities that another CPU's rounding cannot move past the tolerance: ATen's three kernel sets
-    (ATEN_CPU_CAPABILITY=default, avx2, avx512, each with its own inductor cache) moved the losses by at most 1.5e-4
-    relative and each tensor's norm by at most 0.7 %, while a tensor's sum (near-zero weights that six Adam steps
-    push either way) moved by up to 8 %. Rounding's differences grow with each step: on an AMD EPYC the SG losses
-    agreed within 1e-3 for four iterations and moved 0.14 % and 1.5 % at the fifth and sixth, so those two are held
-    to 5 %. A change of the model or the objective moves the first losses by far more."""
+    Compared only in what another CPU's rounding cannot move past the tolerance. Not a single tensor's norm: Adam's
+    first steps move each weight by about +-lr whatever its gradient's size, so where a gradient is near zero its
+    sign, which rounding flips, decides a small zero-started tensor's norm (backbone.0.1.bias, 64 numbers, moved 6 %
+    on an Intel Xeon, which moves the backbone's norm by 3e-8). A top-level module's norm sums thousands of numbers
+    and its random start. Checked on a 2-core AMD EPYC with ATen's kernel sets (ATEN_CPU_CAPABILITY default, avx2
+    and avx512 at one thread, avx2 at two; each with its own inductor cache): a tensor's norm moved by up to 5.4 %
+    (SG under "default"), a module's by at most 0.39 % (MC's zero-started shape head); the losses of the first three
+    iterations agreed to the log's six digits, the fourth's within 1.9e-3, the fifth's and sixth's within 1.9 %.
+    Rounding's differences grow with each step, so the tolerances do too. A change of the model or the objective
+    moves the first losses by far more."""
     torch._dynamo.reset()  # compile afresh, as a new process does: graphs compiled by earlier tests are not reused
     reference = json.loads(HOUSE_REFERENCE.read_text())[shading]
     run = tmp_path / shading
@@ -556,10 +569,12 @@ def test_the_default_models_train_as_they_did_before_the_retired_experiments_lef
     assert {name: list(value.shape) for name, value in weights.items()} == reference["shapes"]
     losses = lambda text: [float(row.split(",")[1]) for row in text.splitlines()[1:]]  # noqa: E731 (total per row)
     got, expected = losses((run / "log.csv").read_text()), losses(reference["log"])
-    assert got[:4] == pytest.approx(expected[:4], rel=1e-3)
+    assert got[:3] == pytest.approx(expected[:3], rel=1e-4)
+    assert got[3] == pytest.approx(expected[3], rel=1e-2)
     assert got[4:] == pytest.approx(expected[4:], rel=5e-2)
-    for name, value in weights.items():
-        assert float(value.double().norm()) == pytest.approx(reference["norms"][name], rel=2e-2, abs=1e-6), name
+    norms = _module_norms({name: float(value.double().norm()) for name, value in weights.items()})
+    for module, norm in _module_norms(reference["norms"]).items():
+        assert norms[module] == pytest.approx(norm, rel=2e-2, abs=1e-6), module
 
 
 def _version_8_run(folder: Path, **changes) -> Path:
