@@ -10,7 +10,6 @@ generator parameters), and ``manifest.json`` once every map is there. Resumable:
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -18,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dibrpp.io import atomic_path, read_exr, write_exr
+from dibrpp.cli_args import Parser, check_output_folder, float_in, int_in, non_negative_int
+from dibrpp.io import DataError, atomic_path, read_exr, write_exr
 
 from .config import OUTDOOR_SHARE
 
@@ -52,7 +52,7 @@ def render_set(out: Path, count: int, seed: int = 0, height: int = 64, outdoor_s
     if manifest.exists():
         saved = json.loads(manifest.read_text())
         if (saved.get("seed"), saved.get("height"), saved.get("outdoor_share")) != (seed, height, outdoor_share):
-            raise SystemExit(f"error: {out} holds a set made with other settings ({saved}); choose another --out")
+            raise SystemExit(f"error: --out {out} holds a set made with other settings ({saved}); choose another --out")
     todo = [i for i in range(count) if not map_path(out, i).exists()]
     for i in tqdm(todo, desc="env maps", unit="map", disable=not progress):
         t0 = time.perf_counter()
@@ -83,17 +83,19 @@ def read_set(folder: Path) -> tuple[np.ndarray, list[str]]:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m datagen.envmap_set", description=__doc__.split("\n\n")[0])
+    p = Parser(prog="python -m datagen.envmap_set", description=__doc__)
     p.add_argument("--out", type=Path, required=True, help="output folder (reruns resume into it)")
-    p.add_argument("--count", type=int, default=600, help="number of maps (default 600)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the set (default 0)")
-    p.add_argument("--envmap-height", type=int, default=64, help="map height; width is twice that (default 64)")
-    p.add_argument("--outdoor-share", type=float, default=OUTDOOR_SHARE,
-                   help=f"share of outdoor skies, the rest rooms (default {OUTDOOR_SHARE}, the datasets')")
+    p.add_argument("--count", type=int_in(1, 100_000), default=600, help="number of maps")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the set")
+    p.add_argument("--envmap-height", type=int_in(1, 1024), default=64, help="map height; width is twice that")
+    p.add_argument("--outdoor-share", type=float_in(0.0, 1.0), default=OUTDOOR_SHARE,
+                   help="share of outdoor skies, the rest rooms (the datasets')")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
-    if a.count < 1 or a.envmap_height < 4 or not 0.0 <= a.outdoor_share <= 1.0 or a.seed < 0:
-        p.error("--count must be >= 1, --envmap-height >= 4, --outdoor-share in [0, 1], --seed >= 0")
+    try:
+        check_output_folder("--out", a.out)
+    except DataError as e:
+        p.exit(2, f"error: {e}\n")
     done = render_set(a.out, a.count, a.seed, a.envmap_height, a.outdoor_share, progress=not a.quiet)
     print(f"{a.out}: {a.count} env maps ({done} rendered now)")
     return 0

@@ -89,7 +89,10 @@ def make(folder: Path = HERE) -> tuple[Path, ...]:
     write_exr(env, env_map)
     rgba = photo(verts, faces, env_map)
     write_exr(exr, rgba)
-    write_png(png, rgba)  # sRGB-encoded, clipped at 1: what an 8-bit photo keeps
+    # sRGB-encoded, clipped at 1: what an 8-bit photo keeps; straight alpha, as image editors write it (the render's
+    # colour is premultiplied: divided by alpha where the object covers part of a pixel)
+    alpha = rgba[..., 3:]
+    write_png(png, np.concatenate([np.where(alpha > 0, rgba[..., :3] / np.maximum(alpha, 1e-8), 0.0), alpha], -1))
     return mesh, env, exr, png
 
 

@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from datagen.envmap_set import read_set
 from dibrpp.conventions import equirect_solid_angles
-from dibrpp.cli_args import Parser, check_output_folder, positive_int
+from dibrpp.cli_args import Parser, check_output_folder, non_negative_float, non_negative_int, positive_int
 from dibrpp.display import display_image
 from dibrpp.formatting import markdown_table, pyplot, save_figure
 from dibrpp.io import DataError, atomic_path
@@ -126,17 +126,24 @@ def main(argv=None) -> int:
     p.add_argument("--maps", type=Path, default=Path("data/envmaps"), help="the env-map set (python -m datagen.envmap_set)")
     p.add_argument("--out", type=Path, default=Path("models/light-space"), help="where the space and its card go")
     p.add_argument("--latent", type=positive_int, default=SpaceConfig.latent, help="latent dimensions")
-    p.add_argument("--steps", type=positive_int, default=4000, help="training steps")
-    p.add_argument("--batch", type=positive_int, default=64, help="maps per step")
-    p.add_argument("--kl", type=float, default=1e-3, help="weight of the VAE's KL term (per latent, in log-error units)")
-    p.add_argument("--train-maps", type=int, default=0, help="train on the first N training maps only (0: all): a curve")
-    p.add_argument("--seed", type=int, default=0, help="seed of the weights and the batches")
+    p.add_argument("--steps", type=positive_int, default=3000, help="training steps")
+    p.add_argument("--batch", type=positive_int, default=32, help="maps per step")
+    p.add_argument("--kl", type=non_negative_float, default=1e-3,
+                   help="weight of the VAE's KL term (per latent, in log-error units)")
+    p.add_argument("--train-maps", type=non_negative_int, default=0,
+                   help="train on the first N training maps only (0: all): a curve")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="seed of the weights and the batches")
     p.add_argument("--check", type=Path, action="append", default=[], help="also score the maps of this folder")
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: torch's)")
     a = p.parse_args(argv)
     if a.threads:
         torch.set_num_threads(a.threads)
     config = SpaceConfig(latent=a.latent)
+    if not a.maps.is_dir():
+        p.error(f"--maps {a.maps}: not a folder; make the env-map set with `python -m datagen.envmap_set --out {a.maps}`")
+    for folder in a.check:  # before the training, not after it
+        if not folder.is_dir():
+            p.error(f"--check {folder}: not a folder of env maps")
     try:
         check_output_folder("--out", a.out)
         raw, kinds = read_set(a.maps)
@@ -157,20 +164,21 @@ def main(argv=None) -> int:
     train_log = torch.cat([to_log_map(augment(train_maps, g), config.height) for _ in range(8)])
     test_log = to_log_map(test_maps, config.height)
     test_kinds = kinds[len(maps) - n_test:]
-    results = {"held-out": scores(space, test_log, train_log)}
+    results = {f"held-out ({n_test})": scores(space, test_log, train_log)}
     for kind in ("outdoor", "indoor"):
         chosen = [i for i, k in enumerate(test_kinds) if k == kind]
         if chosen:
-            results[f"held-out {kind}"] = scores(space, test_log[chosen], train_log)
+            results[f"held-out {kind} ({len(chosen)})"] = scores(space, test_log[chosen], train_log)
     rows = [(f"held-out {test_kinds[i]}", test_maps[i:i + 1]) for i in range(min(4, n_test))]
     level = float(maps.mean((1, 2, 3)).median())
-    for folder in [*a.check, *bundled_hdris()]:
+    folders = [(str(f), f) for f in a.check] + [("Blender's bundled HDRIs", f) for f in bundled_hdris()]
+    for label, folder in folders:
         try:
             extra, names = read_folder(folder, maps.shape[2])
         except DataError as e:
             p.exit(2, f"error: {e}\n")
         extra = extra * (level / extra.mean((1, 2, 3), keepdim=True).clamp_min(1e-8))
-        results[str(folder)] = scores(space, to_log_map(extra, config.height), train_log)
+        results[f"{label} ({len(names)})"] = scores(space, to_log_map(extra, config.height), train_log)
         rows += [(f"{folder.name}/{names[i]}", extra[i:i + 1]) for i in range(min(3, len(names)))]
     a.out.mkdir(parents=True, exist_ok=True)
     with atomic_path(a.out / FILE) as tmp:

@@ -234,6 +234,8 @@ def read_true_light(path: Path) -> torch.Tensor:
     resampled as the datasets resample a file map."""
     from datagen.envmap_files import EnvmapError, check_envmap, read_envmap_file, resample_equirect
 
+    if not Path(path).is_file():
+        raise DataError(f"--true-light {path}: no such file; give an env map (.exr or .hdr)")
     try:
         env = read_envmap_file(path)
         check_envmap(path, env)

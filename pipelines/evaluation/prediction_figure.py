@@ -55,7 +55,8 @@ def write_report(out: Path, material: dict) -> Path:
     rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(str(v))}</td></tr>"
                    for k, v in material.items())
     files = " · ".join(f'<a href="{name}">{name}</a>' for name in
-                       ("mesh.obj", "texture.png", "envmap.exr", "material.json", "novel_views.png", OVERVIEW))
+                       ("model.glb", "mesh.obj", "texture.png", "envmap.exr", "envmap.hdr", "material.json",
+                        "novel_views.png", OVERVIEW))
     page = (f"<!doctype html><meta charset=utf-8><title>dibrpp prediction: {html.escape(material['input'])}</title>"
             "<body style='font-family:sans-serif;margin:1em 2%'>"
             f"<h1>Prediction from {html.escape(material['input'])}</h1>{img(OVERVIEW)}"
