@@ -32,7 +32,7 @@ class SpaceConfig:
     latent: int = 16
     height: int = 16
     width: int = 32
-    channels: int = 64
+    channels: int = 32
 
 
 def _pad(x: torch.Tensor) -> torch.Tensor:
