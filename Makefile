@@ -24,7 +24,7 @@ TRAIN_ARGS ?=
 .PHONY: light-space models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
-	@echo "make reproduce        the paper-style tables end to end: data, every method and seed, Tables D/E, evaluation (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
+	@echo "make reproduce        every paper table and figure end to end: data, every method and seed, Tables D/E, the published model, evaluation, bench, studies (resumable; ~23-30 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
 	@echo "make first-look       the glossy set, SG, seed 0, evaluated (32 min on 2 cores)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
@@ -38,7 +38,7 @@ help:
 	@echo "make data-glossy-elevations  the glossy set with its views at 12, 22, 32 and 42 degrees of elevation in turn"
 	@echo "make train-glossy     train SG, MC and SH on $(DATA)/glossy, then SG with seeds $(SEEDS) (also -metallic, -diffuse)"
 	@echo "make train-ablations  glossy runs for Tables D and E (SH shading with SG light; K = 4, 8, 16)"
-	@echo "make train-published  DIB-R++ as published: SG and MC on each dataset, SG seeds 1-2 on glossy (Tables 1, C, F)"
+	@echo "make train-published  DIB-R++ as published: SG and MC on each set of PUBLISHED_SETS (default: all three), SG seeds 1-2 on glossy (Tables 1, C, F)"
 	@echo "make train-variants   the named variants (ablations, diagnostics; python -m pipelines.train --list-variants)"
 	@echo "make eval             paper metrics of every run under $(RUNS) on the test split (results/eval/)"
 	@echo "make bench            Table A, Table B (vs Mitsuba 3) and the training-iteration benchmark (results/bench/)"
@@ -147,31 +147,38 @@ train-variant-runs: $(VENV)/.installed
 	done
 
 # DIB-R++ as published (variant published; docs/deviations.md lists what still differs): each method of
-# PUBLISHED_METHODS on each dataset with seed 0, and SG on glossy with seeds 1 and 2 (Table F), into
-# runs/<dataset>/<method>-published-seed<s>. Resumable.
+# PUBLISHED_METHODS on each set of PUBLISHED_SETS with seed 0, and, where glossy is one of them, SG on glossy with
+# the seeds of SEEDS (Table F), into runs/<dataset>/<method>-published-seed<s>. Every set's data is checked before
+# anything trains. Table C alone: `make train-published PUBLISHED_SETS=diffuse`. Resumable.
 PUBLISHED_METHODS ?= sg mc
+PUBLISHED_SETS ?= $(DATASETS)
 train-published: $(VENV)/.installed
-	@set -e; for d in $(DATASETS); do \
-	  test -f $(DATA)/$$d/manifest.json || { echo "error: no dataset in $(DATA)/$$d; run 'make data-$$d' first"; exit 1; }; \
+	@for d in $(PUBLISHED_SETS); do \
+	  test -f $(DATA)/$$d/manifest.json || { echo "error: no dataset in $(DATA)/$$d; run 'make data-$$d' first (or leave $$d out: PUBLISHED_SETS=...)"; exit 1; }; \
+	done
+	@set -e; for d in $(PUBLISHED_SETS); do \
 	  for m in $(PUBLISHED_METHODS); do \
 	    echo "== $$d / $$m / published / seed 0"; \
 	    $(PY) -m pipelines.train --dataset $(DATA)/$$d --shading $$m --variant published --seed 0 \
 	      --out $(RUNS)/$$d/$$m-published-seed0 --resume $(TRAIN_ARGS); \
 	  done; \
-	done; \
-	for s in $(SEEDS); do \
+	done
+	@set -e; for s in $(if $(filter glossy,$(PUBLISHED_SETS)),$(SEEDS)); do \
 	  echo "== glossy / sg / published / seed $$s"; \
 	  $(PY) -m pipelines.train --dataset $(DATA)/glossy --shading sg --variant published --seed $$s \
 	    --out $(RUNS)/glossy/sg-published-seed$$s --resume $(TRAIN_ARGS); \
 	done
 
-# The paper-style tables end to end: every dataset, every method and seed, Tables D/E, evaluation. Resumable:
-# rerun it after an interruption and it continues where it stopped.
+# Every table and figure of the paper end to end: the three sets, every method and seed, Tables D/E, the published
+# model, evaluation (Tables 1, C-F, Figures O-Q), then Tables A and B and the training-step split (bench) and
+# Figures A-E (studies). Resumable: rerun it after an interruption and it continues where it stopped.
 reproduce: data
 	@for d in $(DATASETS); do $(MAKE) --no-print-directory train-$$d || exit 1; done
 	@$(MAKE) --no-print-directory train-ablations
 	@$(MAKE) --no-print-directory train-published
 	@$(MAKE) --no-print-directory eval
+	@$(MAKE) --no-print-directory bench
+	@$(MAKE) --no-print-directory studies
 
 # The models that ship in models/ (what `make demo` and the README's predict command use without training): the
 # default SG run on each of MODEL_SETS, trained as above, then written in half precision, evaluated as shipped and
@@ -246,6 +253,7 @@ eval: $(VENV)/.installed
 
 # Time per training iteration and its split (needs the glossy dataset: make data-glossy).
 bench-train: $(VENV)/.installed
+	@test -f $(DATA)/glossy/manifest.json || { echo "error: no dataset in $(DATA)/glossy; run 'make data-glossy' first"; exit 1; }
 	$(PY) -m benchmarks.train_step --dataset $(DATA)/glossy --out results/bench
 
 # Table B: the same env-map optimisation in dibrpp and Mitsuba 3, wall time and peak memory.
