@@ -6,6 +6,11 @@
 Phases: data (drawing the batch from the decoded tensors), encoder (forward), render + losses
 (eq. 8 and the cross-view renders again under their own light: 48 renders of 64x64 for 8 objects x 2 views),
 backward, optimiser step. Prints a table and writes Markdown/CSV under --out.
+
+``--profile N`` also runs N steps under torch.profiler and writes ``profile_<shading>.md``: the operators that cost
+most (self time, forward and backward apart), the time per encoder module, and the step's floating-point work
+(the profiler's count for matrix products and convolutions) against the cores' peak, measured in the same run as the
+rate of a large float32 matrix product at the same threads.
 """
 from __future__ import annotations
 
@@ -84,6 +89,10 @@ def build_parser() -> Parser:
                     "(default: cpu)")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the step runs (default: cpu)")
     ap.add_argument("--out", default="results/bench", metavar="DIR", help="results folder (made if missing)")
+    ap.add_argument("--profile", type=non_negative_int, default=0, metavar="N",
+                    help="also profile N steps per shading (profile_<shading>.md; 0: no profile)")
+    ap.add_argument("--threads", type=non_negative_int, default=0, metavar="N",
+                    help="torch threads (0: torch's default, one per core)")
     return ap
 
 
@@ -106,6 +115,76 @@ def configs(args) -> list[TrainConfig]:
         raise DataError(f"--dataset {args.dataset}: {e}") from None
 
 
+def peak_gflops(seconds: float = 2.0) -> float:
+    """The cores' float32 rate at this process's threads: GFLOP/s of repeated 1024^2 matrix products."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    a @ b  # warm
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a @ b
+        n += 1
+    return 2 * 1024 ** 3 * n / (time.perf_counter() - t0) / 1e9
+
+
+def profile_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> str:
+    """A Markdown report of ``iterations`` training steps under torch.profiler (after ``warmup`` untraced ones)."""
+    from torch.profiler import ProfilerActivity, profile, record_function
+
+    torch.manual_seed(config.seed)
+    ds = MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False)
+    data = TrainingViews(ds, ds.resolution, device=config.device)
+    model = make_model(config, ds.resolution).to(config.device)
+    opt = make_optimizer(model, config)
+    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
+    modules = {m: name for name, m in model.named_children()}
+    handles = [m.register_forward_pre_hook(lambda m, _: setattr(m, "_rf", record_function(f"module::{modules[m]}")
+                                                                  .__enter__())) for m in modules]
+    handles += [m.register_forward_hook(lambda m, *_: m._rf.__exit__(None, None, None)) for m in modules]
+
+    def step(it: int) -> None:
+        batch = data.batch(it, config.batch_objects, config.seed)
+        renderer, second = step_renderers(config, it)
+        with record_function("phase::forward"):
+            total, _, _ = multiview_losses(model, renderer, batch, config, laplacian, second)
+        opt.zero_grad(set_to_none=True)
+        with record_function("phase::backward"):
+            total.backward()
+        with record_function("phase::optimizer"):
+            opt.step()
+
+    for it in range(warmup):
+        step(it)
+    with profile(activities=[ProfilerActivity.CPU], with_flops=True) as prof:
+        t0 = time.perf_counter()
+        for it in range(warmup, warmup + iterations):
+            step(it)
+        seconds = (time.perf_counter() - t0) / iterations
+    for h in handles:
+        h.remove()
+    events = prof.key_averages()
+    per = lambda e: e.self_cpu_time_total / 1000 / iterations  # noqa: E731 (ms per step)
+    phases = {e.key[7:]: e.cpu_time_total / 1000 / iterations for e in events if e.key.startswith("phase::")}
+    module_ms = {e.key[8:]: e.cpu_time_total / 1000 / iterations for e in events if e.key.startswith("module::")}
+    ops = sorted((e for e in events if "::" in e.key and not e.key.startswith(("phase::", "module::"))),
+                 key=per, reverse=True)[:25]
+    flops = sum(e.flops for e in events) / iterations
+    peak = peak_gflops()
+    achieved = flops / seconds / 1e9
+    lines = [f"Profile of {iterations} {config.shading.upper()} steps at {torch.get_num_threads()} threads "
+             f"(after {warmup}): {1000 * seconds:.0f} ms a step under the profiler.", "",
+             f"Floating-point work counted (matrix products, convolutions): {flops / 1e9:.2f} GFLOP a step, "
+             f"{achieved:.1f} GFLOP/s against a matrix product's {peak:.1f} GFLOP/s at the same threads: "
+             f"{100 * achieved / peak:.1f} % of the peak.", "",
+             markdown_table(["phase", "ms a step"], [[k, f"{v:.0f}"] for k, v in phases.items()], align="lr"), "",
+             "Encoder modules, forward (ms a step, with their children):", "",
+             markdown_table(["module", "ms"], [[k, f"{v:.1f}"] for k, v in sorted(module_ms.items(), key=lambda kv: -kv[1])],
+                            align="lr"), "",
+             "Operators by self time (ms a step; forward and backward operators apart):", "",
+             markdown_table(["operator", "self ms", "calls a step"],
+                            [[e.key, f"{per(e):.1f}", f"{e.count / iterations:.0f}"] for e in ops], align="lrr")]
+    return "\n".join(lines) + "\n"
+
+
 def write_results(results: list[dict], config: TrainConfig, res: int, iterations: int, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["shading", *PHASES, "total"]
@@ -121,6 +200,8 @@ def write_results(results: list[dict], config: TrainConfig, res: int, iterations
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     results = []
     try:
         if args.device == "cuda" and not torch.cuda.is_available():
@@ -133,6 +214,11 @@ def main(argv=None) -> int:
             r = {"shading": config.shading, **{k: 1000 * v for k, v in r.items()}}
             results.append(r)
             print(f"{config.shading:>5}: " + ", ".join(f"{k} {r[k]:.0f} ms" for k in (*PHASES, "total")))
+            if args.profile:
+                report = profile_iterations(config, args.profile, args.warmup)
+                Path(args.out).mkdir(parents=True, exist_ok=True)
+                (Path(args.out) / f"profile_{config.shading}.md").write_text(report)
+                print(report)
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
