@@ -24,7 +24,7 @@ TRAIN_ARGS ?=
 .PHONY: light-space models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
-	@echo "make reproduce        every paper table and figure end to end: data, every method and seed, Tables D/E, the published model, evaluation, bench, studies (resumable; ~23-30 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
+	@echo "make reproduce        every paper table and figure end to end: data, every method and seed, Tables D/E, the published model, evaluation, bench, studies (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
 	@echo "make first-look       the glossy set, SG, seed 0, evaluated (32 min on 2 cores)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
