@@ -40,6 +40,14 @@ def test_the_cli_reads_a_run_and_says_what_it_measured(tiny_glossy, tmp_path, ca
     captured = capsys.readouterr()
     assert code == 0, captured.err
     assert "a constant map (the reference" in captured.out and "| 0 %" in captured.out
+    # the target's own count: the views under the dataset's outdoor maps (its manifest's env_kind)
+    import json
+    from datagen.reader import MultiViewDataset
+    from pipelines.scoring import strided_views
+    ds = MultiViewDataset(tiny_glossy, split="test", views_per_item=1)
+    kinds = json.loads((tiny_glossy / "manifest.json").read_text())["env_kind"]
+    outdoor = sum(kinds[ds[i]["envmap_index"]] == "outdoor" for i in strided_views(ds, 1))
+    assert "… of the views under outdoor maps" in captured.out and f"% of {outdoor} |" in captured.out
     # --dataset names the set whose test views are read: here the run's own, so the same table
     assert diagnose_sky.main(["--runs", str(run), "--view-stride", "1", "--dataset", str(tiny_glossy)]) == 0
     assert captured.out.splitlines()[2:] == capsys.readouterr().out.splitlines()[2:]
