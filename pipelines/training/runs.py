@@ -252,11 +252,11 @@ def check_config_matches_model(folder: Path, config: TrainConfig, model_config: 
 
 # ----------------------------------------------------------------------------- what a run is built from
 
-def make_model(config: TrainConfig, image_size: int) -> Encoder:
+def make_model(config: TrainConfig, image_size: int, resuming: bool = False) -> Encoder:
     """The encoder a run trains on images of ``image_size`` (the dataset's); with the light space's sky, its decoder
-    loaded from LIGHT_SPACE (held: the run's checkpoint keeps a copy)."""
+    loaded from LIGHT_SPACE (held: the run's checkpoint keeps a copy, which a ``resuming`` run reads instead)."""
     model = _new_model(config, image_size)
-    if model.config.sky == "space":
+    if model.config.sky == "space" and not resuming:
         load_light_space(model, LIGHT_SPACE)
     return model
 

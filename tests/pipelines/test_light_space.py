@@ -172,3 +172,24 @@ def test_the_env_map_set_draws_no_datasets_map_and_resumes(tmp_path):
         envmap_set.render_set(out, 2, height=16, progress=False)
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["count"] == 2 and manifest["format"] == envmap_set.FORMAT
+
+
+def test_a_light_space_run_trains_resumes_and_loads_with_its_decoder(tiny_glossy, tmp_path, monkeypatch):
+    """The variant trains with the decoder held (the checkpoint keeps it: a run loads without models/light-space)."""
+    from pipelines.train import train
+    from pipelines.training import runs
+    from pipelines.training.config import TrainConfig
+
+    space = _space_folder(tmp_path)
+    monkeypatch.setattr(runs, "LIGHT_SPACE", space)
+    out = tmp_path / "run"
+    cfg = dict(dataset=str(tiny_glossy), out=str(out), iterations=2, batch_objects=2, log_every=1, checkpoint_every=2,
+               lobes=4, compile=False, variant="light-space", light_head="space", light_colour="white")
+    train(TrainConfig(**cfg), progress=False)
+    held = LightSpace.load(space / "light_space.pt").state_dict()
+    saved = torch.load(out / "checkpoint.pt", weights_only=True)["model"]
+    assert all(torch.equal(saved[f"light_head.space.{k}"], v) for k, v in held.items())
+    monkeypatch.setattr(runs, "LIGHT_SPACE", tmp_path / "gone")
+    train(TrainConfig(**{**cfg, "iterations": 3}), resume=True, progress=False)
+    run = runs.load_run(out)
+    assert run.config.label() == "light-space" and run.model.config.sky == "space"
