@@ -21,7 +21,7 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: light-space models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
+.PHONY: models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        every paper table and figure end to end: data, every method and seed, Tables D/E, the published model, evaluation, bench, studies (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
@@ -32,7 +32,6 @@ help:
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
 	@echo "make test-fast        the suite without the tests marked slow (> ~30 s on 2 cores): the edit loop"
 	@echo "make data             render the metallic, glossy and diffuse datasets with Cycles into $(DATA)/"
-	@echo "make light-space      the learned space of env maps (600 procedural maps, a VAE; ~15 min): models/light-space"
 	@echo "make data-glossy-hdri the glossy cars under HDRIs from a folder (HDRIS=DIR; default: Blender's 8 bundled maps)"
 	@echo "make data-metallic-sunny  other metallic cars under skies only: a test set with many suns (~4 min)"
 	@echo "make data-glossy-elevations  the glossy set with its views at 12, 22, 32 and 42 degrees of elevation in turn"
@@ -99,13 +98,6 @@ data-metallic-sunny: $(VENV)/.installed
 # python -m pipelines.evaluate --runs runs/glossy --dataset data/glossy-elevations --out results/eval-elevations
 data-glossy-elevations: $(VENV)/.installed
 	$(PY) -m datagen --dataset glossy --elevations 12,22,32,42 --out $(DATA)/glossy-elevations
-
-# The learned space of env maps the light head can predict in (light_head space; pipelines/model/light_space.py): 600
-# procedural maps alone (no object rendered; a seed stream no dataset draws from), then a small VAE on them, scored on
-# its held-out maps and Blender's bundled HDRIs (models/light-space/MODEL_CARD.md). Resumable.
-light-space: $(VENV)/.installed
-	$(PY) -m datagen.envmap_set --out $(DATA)/envmaps --count 600
-	$(PY) -m pipelines.light_space --maps $(DATA)/envmaps --out models/light-space
 
 # Resumable: rerunning skips finished samples and redoes partial ones.
 data-%: $(VENV)/.installed

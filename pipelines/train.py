@@ -180,7 +180,7 @@ def train(config: TrainConfig, resume: bool = False, progress: bool = True,
                          normals=config.probe_normals == "pixels", albedos=config.supervision == "albedo",
                          roughness=config.supervision == "roughness", device=config.device,
                          max_objects=config.train_objects)
-    model = make_model(config, data.resolution, resuming=ckpt.exists()).to(config.device)
+    model = make_model(config, data.resolution).to(config.device)
     if config.probe_normals == "pixels":  # fitted once, before the model trains, held, read in evaluation
         runs.fitted_pixel_normals(out, model, data, config.seed, progress and rank == 0)
     opt = make_optimizer(model, config)

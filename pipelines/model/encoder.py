@@ -43,8 +43,7 @@ MAX_SHARPNESS = 3000.0  # SG lobes no narrower than ~1 degree (a sun)
 # the allowed values of the model's string options
 CHOICES = {"texture": ("projected", "global"), "light_colour": ("white", "free", "sky-ground"),
            "light_head": ("global", "probe"),
-           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels"), "specular": ("learnt", "fixed"),
-           "sky": ("cue", "space")}
+           "input_range": ("full", "clipped"), "probe_normals": ("surface", "pixels"), "specular": ("learnt", "fixed")}
 # Principled's Specular IOR Level whose F0 is 0.04 (IOR 1.5): the metallic-roughness convention's dielectric
 DIELECTRIC_SPECULAR = 0.5
 
@@ -81,9 +80,6 @@ class ModelConfig:
     # fixed: DIELECTRIC_SPECULAR for every object | learnt: the specular level from the global code (a metal's
     # reflectance is its albedo either way)
     specular: str = "fixed"
-    # the probe head's sky: the mirror cue refined by a CNN (cue), or a point of the learned space of env maps that a
-    # CNN on the cue predicts (space; pipelines.model.light_space, its decoder held)
-    sky: str = "cue"
     width: int = 32  # channels of the first conv layer
     # side of the feature map the global code is read from: 0 for the image side / 16 (4 at 64², 8 at 128²), or
     # at most this side, one more downsampling block per halving (the fully connected layer's size then stays the same)
@@ -99,8 +95,6 @@ class ModelConfig:
                 raise ValueError(f"{name} must be {' or '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
         if self.light_head == "probe" and self.shading == "sh":
             raise ValueError("the probe light head predicts SG lobes or env maps, not SH")
-        if self.sky == "space" and self.light_head != "probe":
-            raise ValueError("sky 'space' is the probe light head's; use it with light_head 'probe'")
         if self.probe_normals == "pixels" and self.light_head != "probe":
             raise ValueError("probe_normals 'pixels' gives the probe head's pixels their normals; use it with "
                              "light_head 'probe'")
@@ -191,8 +185,7 @@ class Encoder(nn.Module):
         kind = LIGHT_KINDS[c.shading]
         if c.light_head == "probe":
             self.light_head = ProbeLightHead(kind, c.lobes, c.env_height, c.env_width, MAX_SHARPNESS, MAX_LOG_RADIANCE,
-                                             sky_ground=c.light_colour == "sky-ground" and c.sky == "cue",
-                                             space=c.sky == "space")
+                                             sky_ground=c.light_colour == "sky-ground")
         else:
             light_out = {"sg": c.lobes * 7, "sh": 27, "env": c.env_height * c.env_width * 3}[kind]
             self.light_head = nn.Linear(512, light_out)

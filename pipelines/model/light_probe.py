@@ -29,8 +29,6 @@ from dibrpp.raster import RasterSettings, rasterize
 from dibrpp.renderer import build_gbuffer
 from dibrpp.sg import sg_integral
 
-from .light_space import LATENT_BOUND, LightSpace, SpaceConfig, sample_log_map, yaw_frame
-
 # camera (x right, y up, z back) -> probe frame (X forward = -z, Y left = -x, Z up = y); a rotation (det +1)
 CAMERA_TO_PROBE = ((0.0, 0.0, -1.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
 LOG_EPS = 1e-3  # radiance floor of the grid's log (an 8-bit input's darkest step is ~3e-4 linear)
@@ -204,8 +202,7 @@ class ProbeLightHead(nn.Module):
     """
 
     def __init__(self, kind: str, lobes: int, height: int, width: int, max_sharpness: float,
-                 max_log_radiance: float, code: int = 512, channels: int = 32, sky_ground: bool = False,
-                 space: bool = False):
+                 max_log_radiance: float, code: int = 512, channels: int = 32, sky_ground: bool = False):
         super().__init__()
         if kind not in ("env", "sg"):
             raise ValueError(f"the probe light head predicts env maps (mc) or SG lobes (sg, sh-sg), not {kind!r}")
@@ -243,16 +240,6 @@ class ProbeLightHead(nn.Module):
                 self.sky_ground = nn.Linear(code, 6)  # log colour of the sky and of the ground, beside the cue's
             nn.init.zeros_(self.sky_ground.weight)
             nn.init.zeros_(self.sky_ground.bias)
-        self.space = None
-        if space:  # its own draws (zeroed or loaded anyway): every other weight starts as the cue's sky alone's
-            with torch.random.fork_rng(devices=[]):
-                self.space = LightSpace(SpaceConfig(height=height, width=width)).requires_grad_(False)
-                # the latent from the features resampled into the space's frame, and the global code
-                self.to_latent = nn.Linear(channels * height * width + code, self.space.config.latent)
-            nn.init.zeros_(self.to_latent.weight)
-            nn.init.zeros_(self.to_latent.bias)
-            self.register_buffer("space_cell_dirs", conventions.equirect_directions(height, width).flatten(0, 1),
-                                 persistent=False)
 
     def _conv(self, layer: nn.Conv2d, x: torch.Tensor) -> torch.Tensor:
         return layer(F.pad(F.pad(x, (1, 1, 0, 0), mode="circular"), (0, 0, 1, 1), mode="replicate"))
@@ -266,37 +253,16 @@ class ProbeLightHead(nn.Module):
         h = F.leaky_relu(self._conv(self.mid, h * (1 + scale) + shift), 0.2)
         return h, self._conv(self.out, h)
 
-    def sky(self, grid: torch.Tensor, residual: torch.Tensor, h: torch.Tensor, code: torch.Tensor,
+    def sky(self, grid: torch.Tensor, residual: torch.Tensor, code: torch.Tensor,
             probe_to_world: torch.Tensor) -> torch.Tensor:
         """(B, K-1, 3) the sky lobes' amplitudes: the mirror cue's luminance (on glossy paint the cue's colour is
         mostly the paint's), refined by the residual (and with ``sky_ground``, tinted by the sky's and the ground's
         colours), sampled at the fixed axes."""
-        if self.space is not None:
-            return self.space_sky(h, code, probe_to_world)
         cue = grid[:, :3].mean(1, keepdim=True)
         log_map = torch.log(cue + LOG_EPS) + residual[:, :3] + self.log_gain
         if self.sky_ground is not None:
             log_map = log_map + self.hemisphere_colour(grid, code, probe_to_world)
         return torch.exp(sample_grid(log_map, self.axes).clamp_max(self.max_log_radiance))
-
-    def space_latent(self, h: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, L) the light space's latent from the features ``h`` (B, C, H, W; probe frame) resampled into the space's
-        frame (the world's up as its pole, so that a row is an elevation whatever the camera's) and the global code,
-        within LATENT_BOUND of the prior's centre."""
-        to_space = yaw_frame(probe_to_world)  # (B, 3, 3): probe -> space
-        seen = sample_grid(h, self.space_cell_dirs @ to_space)  # each space cell's direction in the probe frame
-        raw = self.to_latent(torch.cat([seen.flatten(1), code], -1))
-        return LATENT_BOUND * torch.tanh(raw / LATENT_BOUND)
-
-    def space_log_map(self, h: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) the decoded sky's log radiance, in the space's frame (:func:`light_space.yaw_frame`)."""
-        return self.space.decode(self.space_latent(h, code, probe_to_world)) + self.log_gain
-
-    def space_sky(self, h: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
-        """(B, K-1, 3) the sky lobes' amplitudes: the decoded map at the fixed axes (turned into the space's frame)."""
-        axes = self.axes @ yaw_frame(probe_to_world).mT  # (B, K-1, 3) space-frame directions of the lobes
-        log_map = self.space_log_map(h, code, probe_to_world)
-        return torch.exp(sample_log_map(log_map, axes).clamp_max(self.max_log_radiance))
 
     def hemisphere_colour(self, grid: torch.Tensor, code: torch.Tensor, probe_to_world: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) log colour (mean 0 over RGB) of the sky above the world's horizon and of the ground below it.
@@ -344,7 +310,7 @@ class ProbeLightHead(nn.Module):
         pixels', :func:`facing_mirror_cue`; default: ``grid``'s own)."""
         sun_grid = grid[:, :4] if sun_grid is None else sun_grid
         h, residual = self.features(grid, code)
-        sky = self.sky(grid, residual, h, code, probe_to_world)
+        sky = self.sky(grid, residual, code, probe_to_world)
         sun = self.place_sun(sun_grid, residual, h, code, probe_to_world, metal, sky.mean(1))
         return self.env_light(sky, *sun) if self.kind == "env" else self.sg_light(sky, *sun, sun_grid, metal)
 

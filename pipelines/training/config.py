@@ -77,9 +77,8 @@ class TrainConfig:
                              "the horizon and one below, white-balanced light alone, or light of any colour",
                              ("sky-ground", "white", "free"))
     light_head: str = _opt("probe", "light read from the input through the predicted geometry (probe: the object as a "
-                           "light probe), the same with its sky a point of the learned space of env maps (space: "
-                           "models/light-space, `make light-space`), or regressed from the global code (global, the "
-                           "paper's); SH light is always regressed", ("probe", "space", "global"))
+                           "light probe) or regressed from the global code (global, the paper's); SH light is always "
+                           "regressed", ("probe", "global"))
     input_range: str = _opt("full", "what the encoder sees of an image: its full range (the dataset's EXR, sun "
                             "reflections included) or clipped at 1 (as an 8-bit picture shows it)", ("full", "clipped"))
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
@@ -136,14 +135,10 @@ class TrainConfig:
 
     def has_probe_head(self) -> bool:
         """Whether the light is read through the predicted geometry (SH light is always regressed)."""
-        return self.light_head in ("probe", "space") and self.shading != "sh"
+        return self.light_head == "probe" and self.shading != "sh"
 
     def model_light_head(self) -> str:
         return "probe" if self.has_probe_head() else "global"
-
-    def model_sky(self) -> str:
-        """Where the probe head's sky comes from: the cue refined (cue) or the learned light space (space)."""
-        return "space" if self.light_head == "space" and self.has_probe_head() else "cue"
 
     def independent_mc_samples(self) -> bool:
         """Whether MC's image losses take each pixel's sign and derivative from renders with independent samples:

@@ -73,7 +73,8 @@ LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}, "de11f3d": {"own_ligh
               "fc03e2f": {"own_light_roughness": ("learnt",)}}
 # choices of a kept option whose experiments left the code later: option -> {choice: the last commit with its code}
 CHOICES_LEFT_LATER = {"light_colour": {"sky-prior": "97ea15f", "two-colour": "140a12d"},
-                      "texture": {"projected-unlit": "2527105"}, "supervision": {"sun": "f62f542", "shape": "f62f542"}}
+                      "texture": {"projected-unlit": "2527105"}, "supervision": {"sun": "f62f542", "shape": "f62f542"},
+                      "light_head": {"space": "08b4aeb"}}
 # settings of how a run ran, not of what it trains, that left the config for a flag of train: dropped, any value
 RUN_SETTINGS_LEFT = ("threads",)
 # variants that became the default: their runs are the default model (their fields are the default's values now)

@@ -27,7 +27,7 @@ from datagen.reader import MultiViewDataset
 from dibrpp import RasterSettings, Renderer
 from dibrpp.io import DataError, atomic_path
 
-from ..model import light_space, pixel_normals
+from ..model import pixel_normals
 from .config import ConfigError, TrainConfig
 from .earlier_runs import (RetiredError, earlier_model_config, earlier_state_dict, earlier_train_config,
                            is_earlier_config, without_options_left_later)
@@ -36,8 +36,6 @@ from ..model.model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
 MAX_TEMPLATE_SUBDIVISIONS = 6  # 40962 template vertices; each level more quadruples them
-# the learned space of env maps that light_head "space" decodes (python -m pipelines.light_space; make light-space)
-LIGHT_SPACE = Path(__file__).resolve().parents[2] / "models" / "light-space"
 PIXEL_NORMALS = "pixel_normals.pt"  # variant pixel-normals: the network fitted before the model trains
 LOG, SUMMARY, LOSS_PLOT, SNAPSHOTS, TENSORBOARD = "log.csv", "summary.json", "loss.png", "snapshots", "tensorboard"
 
@@ -252,38 +250,13 @@ def check_config_matches_model(folder: Path, config: TrainConfig, model_config: 
 
 # ----------------------------------------------------------------------------- what a run is built from
 
-def make_model(config: TrainConfig, image_size: int, resuming: bool = False) -> Encoder:
-    """The encoder a run trains on images of ``image_size`` (the dataset's); with the light space's sky, its decoder
-    loaded from LIGHT_SPACE (held: the run's checkpoint keeps a copy, which a ``resuming`` run reads instead)."""
-    model = _new_model(config, image_size)
-    if model.config.sky == "space" and not resuming:
-        load_light_space(model, LIGHT_SPACE)
-    return model
-
-
-def load_light_space(model: Encoder, folder: Path) -> None:
-    """Copy the light space of ``folder`` (``python -m pipelines.light_space``) into the model's light head."""
-    path = Path(folder) / light_space.FILE
-    if not path.is_file():
-        raise DataError(f"no light space in {folder} (needs {light_space.FILE}); run `make light-space` first")
-    try:
-        space = light_space.LightSpace.load(path)
-    except (RuntimeError, KeyError, TypeError, pickle.UnpicklingError) as e:
-        raise DataError(f"{path}: not a light space this code reads ({str(e).splitlines()[0]}); run "
-                        "`make light-space` again") from None
-    head = model.light_head.space
-    if space.config != head.config:
-        raise DataError(f"{path}: the space is {space.config}, the model reads {head.config}; retrain it with "
-                        "`make light-space`")
-    head.load_state_dict(space.state_dict())
-
-
-def _new_model(config: TrainConfig, image_size: int) -> Encoder:
+def make_model(config: TrainConfig, image_size: int) -> Encoder:
+    """The encoder a run trains on images of ``image_size`` (the dataset's)."""
     return Encoder(ModelConfig(shading=config.shading, lobes=config.lobes, image_size=image_size,
                                predict_metallic=bool(config.predict_metallic), texture=config.texture,
                                light_colour=config.light_colour, light_head=config.model_light_head(),
                                input_range=config.input_range, probe_normals=config.probe_normals,
-                               global_grid=config.global_grid, specular=config.specular, sky=config.model_sky()))
+                               global_grid=config.global_grid, specular=config.specular))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:

@@ -42,10 +42,6 @@ VARIANTS: dict[str, Variant] = {
                           runs=(("metallic", 0), ("glossy", 0), ("glossy", 1), ("glossy", 2))),
     "constant-lr": Variant("the learning rate constant over the whole run, no cosine decay over its last third",
                            {"lr_schedule": "constant"}, runs=(("metallic", 0), ("glossy", 0))),
-    # experiments
-    "light-space": Variant("the probe head's sky a point of the learned space of env maps (models/light-space; Weber et "
-                           "al. 2018, Hold-Geoffroy et al. 2019) instead of the cue refined, white-balanced",
-                           {"light_head": "space", "light_colour": "white"}, runs=(("glossy", 0), ("metallic", 0))),
     # the variant whose numbers the README cites
     "pixel-normals": Variant("in evaluation, the probe's mirror cue read through normals an image-space U-Net "
                              "predicts per pixel, fitted to the GT mesh's before the model trains as the default "

@@ -637,6 +637,8 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
     assert load_config(run("default-3", own_light_roughness="learnt")) == TrainConfig(iterations=6000)
     with pytest.raises(DataError, match=r"own_light_roughness='held'.*git checkout fc03e2f"):
         load_config(run("own-roughness-held", own_light_roughness="held"))
+    with pytest.raises(DataError, match=r"light_head='space'.*git checkout 08b4aeb"):
+        load_config(run("light-space", light_head="space", light_colour="white", variant="light-space"))
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
