@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,31 @@ def atomic_path(path, suffix: str | None = None):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+class staged:
+    """``with staged(out) as folder``: a new folder beside ``out`` (inside it where it exists) to write into; when the
+    block succeeds its files move into ``out`` (made if missing) together, and the folder goes either way, so a
+    failure leaves ``out`` as it was."""
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+
+    def __enter__(self) -> Path:
+        parent = self.out if self.out.is_dir() else self.out.parent
+        parent.mkdir(parents=True, exist_ok=True)
+        self.folder = Path(tempfile.mkdtemp(prefix=f".{self.out.name or 'out'}.", suffix=".partial", dir=parent))
+        return self.folder
+
+    def __exit__(self, kind, *exc) -> None:
+        try:
+            if kind is None:
+                self.out.mkdir(parents=True, exist_ok=True)
+                for path in sorted(self.folder.iterdir()):
+                    os.replace(path, self.out / path.name)
+        finally:
+            shutil.rmtree(self.folder, ignore_errors=True)
+
 
 
 def _create_temp_file(folder: Path, prefix: str, suffix: str) -> str:

@@ -24,10 +24,9 @@ import torch
 
 from dibrpp.cli_args import Parser, check_output_folder
 from dibrpp.formatting import format_number, markdown_table
-from dibrpp.io import DataError, atomic_path
+from dibrpp.io import DataError, atomic_path, staged
 
 from .evaluation.summary import CONSTANT_REFERENCES
-from .predict import staged
 from .scoring import EVAL_SPP, EVAL_VIEW_STRIDE, evaluate_run
 from .training.runs import (CAMERA, CHECKPOINT, CONFIG, SUMMARY, load_camera, load_run, read_checkpoint, read_json,
                             run_folder)

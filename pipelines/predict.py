@@ -42,10 +42,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -54,7 +51,7 @@ import torch
 
 from dibrpp import Cameras
 from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in, int_in, non_negative_float, unit_rgb)
-from dibrpp.io import DataError, atomic_path, write_exr, write_png, write_textured_obj
+from dibrpp.io import DataError, atomic_path, staged, write_exr, write_png, write_textured_obj
 
 from .evaluation.metrics import dominant_direction
 from .evaluation.prediction_figure import OVERVIEW, REPORT, write_overview, write_report
@@ -178,30 +175,6 @@ def write_results(out: Path, pred, material: dict, config, cam: Cameras, orbit, 
                    predicted_map, list(renders),
                    None if known is None else (known, f"true light ({material['sun_angle_deg']:.0f}° between the suns)"))
     write_report(out, material)
-
-
-class staged:
-    """``with staged(out) as folder``: a new folder beside ``out`` (inside it where it exists) to write into; when the
-    block succeeds its files move into ``out`` (made if missing) together, and the folder goes either way, so a
-    failure leaves ``out`` as it was."""
-
-    def __init__(self, out: Path):
-        self.out = Path(out)
-
-    def __enter__(self) -> Path:
-        parent = self.out if self.out.is_dir() else self.out.parent
-        parent.mkdir(parents=True, exist_ok=True)
-        self.folder = Path(tempfile.mkdtemp(prefix=f".{self.out.name or 'out'}.", suffix=".partial", dir=parent))
-        return self.folder
-
-    def __exit__(self, kind, *exc) -> None:
-        try:
-            if kind is None:
-                self.out.mkdir(parents=True, exist_ok=True)
-                for path in sorted(self.folder.iterdir()):
-                    os.replace(path, self.out / path.name)
-        finally:
-            shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def checked_camera(run: Path) -> dict:

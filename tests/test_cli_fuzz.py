@@ -107,7 +107,7 @@ CLIS = [
         ("benchmarks.renderer:bench_training",), paths=dict(out="dir-out")),
     Cli("python -m benchmarks.train_step", "benchmarks.train_step:main", ["--dataset", "{data}", "--out", "{out}"],
         ("benchmarks.train_step:time_iterations",), fakes=("benchmarks.train_step:MultiViewDataset",),
-        paths=dict(dataset="dir-in", out="dir-out"), zero_ok=("warmup",), strings=("variant",)),
+        paths=dict(dataset="dir-in", out="dir-out"), zero_ok=("warmup", "profile", "threads"), strings=("variant",)),
     Cli("python -m benchmarks.mitsuba", "benchmarks.mitsuba:main", ["--out", "{out}", "--runs", "dibrpp"],
         ("benchmarks.mitsuba:run_renderer",), paths=dict(out="dir-out"), strings=("runs",),
         free=("variant",)),  # the Mitsuba variant only matters to Mitsuba's columns
