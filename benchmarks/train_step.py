@@ -33,14 +33,20 @@ from pipelines.training.runs import make_model, make_optimizer, step_renderers
 PHASES = ("data", "encoder", "render+losses", "backward", "optimizer")
 
 
-def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> dict:
-    """Median seconds per phase over ``iterations`` training steps (after ``warmup``)."""
+def training_state(config: TrainConfig) -> tuple:
+    """What a training step needs, as train builds it: the training views, the model, its optimiser, the Laplacian."""
     torch.manual_seed(config.seed)
     ds = MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False)
     data = TrainingViews(ds, ds.resolution, device=config.device)
     model = make_model(config, ds.resolution).to(config.device)
     opt = make_optimizer(model, config)
     laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
+    return data, model, opt, laplacian
+
+
+def time_iterations(config: TrainConfig, iterations: int, warmup: int = 2) -> dict:
+    """Median seconds per phase over ``iterations`` training steps (after ``warmup``)."""
+    data, model, opt, laplacian = training_state(config)
     cuda = config.device == "cuda"
 
     def now() -> float:  # a GPU's queued work counted in the phase that queued it
@@ -130,12 +136,7 @@ def profile_iterations(config: TrainConfig, iterations: int, warmup: int = 2) ->
     """A Markdown report of ``iterations`` training steps under torch.profiler (after ``warmup`` untraced ones)."""
     from torch.profiler import ProfilerActivity, profile, record_function
 
-    torch.manual_seed(config.seed)
-    ds = MultiViewDataset(config.dataset, split="train", views_per_item=1, with_envmap=False)
-    data = TrainingViews(ds, ds.resolution, device=config.device)
-    model = make_model(config, ds.resolution).to(config.device)
-    opt = make_optimizer(model, config)
-    laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1]).to(config.device)
+    data, model, opt, laplacian = training_state(config)
     modules = {m: name for name, m in model.named_children()}
     handles = [m.register_forward_pre_hook(lambda m, _: setattr(m, "_rf", record_function(f"module::{modules[m]}")
                                                                   .__enter__())) for m in modules]
