@@ -153,6 +153,27 @@ class Fragments:
         out = out.index_put((pix,), a * vals + (1 - a) * background)
         return out.view(b, h, w, -1)
 
+    def select_images(self, images: torch.Tensor) -> tuple["Fragments", torch.Tensor]:
+        """The fragments of images ``images`` (M,) of this batch, in that order (an image may repeat), and where
+        each of their packed pixels is in this batch's (an index into ``pix``, to take per-pixel values along)."""
+        b, h, w = self.shape
+        order, batch = _select_packed(self.batch, images, b)
+        edge_pix = edge_src = None
+        if self.edge_pix is not None:
+            by_image = torch.argsort(self.edge_pix // (h * w), stable=True)
+            edge_order, edge_batch = _select_packed(self.edge_pix[by_image] // (h * w), images, b)
+            edge_order = by_image[edge_order]
+            edge_pix = edge_batch * (h * w) + self.edge_pix[edge_order] % (h * w)
+            # the packed pixel each edge pixel takes its colour from, in the selection's own packing
+            first_old = _first_index(self.batch, b)[images][edge_batch]
+            first_new = _first_index(batch, len(images))[edge_batch]
+            edge_src = self.edge_src[edge_order] - first_old + first_new
+        dense = lambda t: None if t is None else t[images]  # noqa: E731
+        frags = Fragments(dense(self.face_idx), dense(self.mask), dense(self.soft_mask), dense(self.depth),
+                          batch * (h * w) + self.pix[order] % (h * w), batch, self.pix_face[order], self.bary[order],
+                          dense(self.coverage), edge_pix, edge_src, self.visibility)
+        return frags, order
+
     def interpolate(self, values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Packed (N, C) interpolation of per-corner values.
 
@@ -172,6 +193,21 @@ class Fragments:
         out = packed.new_full((b * h * w, packed.shape[-1]), background)
         out = out.index_put((self.pix,), packed)
         return out.view(b, h, w, -1)
+
+
+def _first_index(batch: torch.Tensor, num_images: int) -> torch.Tensor:
+    """(num_images,) where each image's run starts in the image-sorted packed index ``batch``."""
+    counts = torch.bincount(batch, minlength=num_images)
+    return torch.cumsum(counts, 0) - counts
+
+
+def _select_packed(batch: torch.Tensor, images: torch.Tensor, num_images: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For packed entries sorted by image (``batch``), the entries of ``images`` in that order: their indices and
+    their new image index (0..M-1)."""
+    counts = torch.bincount(batch, minlength=num_images)[images]
+    new_batch = torch.repeat_interleave(torch.arange(len(images), device=batch.device), counts)
+    within = torch.arange(len(new_batch), device=batch.device) - (torch.cumsum(counts, 0) - counts)[new_batch]
+    return _first_index(batch, num_images)[images][new_batch] + within, new_batch
 
 
 def rasterize(meshes: Meshes, cameras: Cameras, settings: RasterSettings | None = None) -> Fragments:

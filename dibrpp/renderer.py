@@ -129,6 +129,14 @@ class Renderer:
         frags = self.rasterize(meshes, cameras)
         return frags, self.build_gbuffer(meshes, cameras, material, frags)
 
+    def gbuffer_of_images(self, meshes: Meshes, cameras: Cameras, material: Material,
+                          images: torch.Tensor) -> tuple[Fragments, GBuffer]:
+        """:meth:`gbuffer` of the B renders, repeated as ``images`` (M,) lists them (indices into B): a render
+        shaded under several lights is rasterized once."""
+        frags, g = self.gbuffer(meshes, cameras, material)
+        selected, order = frags.select_images(images)
+        return selected, g.select(order, selected.batch, len(images))
+
     def shade(self, frags: Fragments, g: GBuffer, light) -> RenderOutput:
         """Shade a G-buffer under ``light``. With fixed geometry, camera and material (e.g. optimising only
         the light) rasterize once with :meth:`gbuffer` and shade it every step."""

@@ -32,6 +32,13 @@ class GBuffer:
     batch: torch.Tensor  # (N,)
     num_images: int
 
+    def select(self, order: torch.Tensor, batch: torch.Tensor, num_images: int) -> "GBuffer":
+        """The pixels ``order`` (indices into this G-buffer's) as images ``batch`` of ``num_images``
+        (:meth:`~dibrpp.raster.Fragments.select_images` gives both)."""
+        taken = {f.name: getattr(self.point, f.name)[order] for f in dataclasses.fields(self.point)
+                 if isinstance(getattr(self.point, f.name), torch.Tensor)}
+        return GBuffer(dataclasses.replace(self.point, **taken), batch, num_images)
+
 
 @torch.compiler.disable
 def _largest(counts: torch.Tensor) -> int:

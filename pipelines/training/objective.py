@@ -13,6 +13,7 @@ import torch
 from dibrpp import Cameras, Renderer
 from dibrpp.lights import EnvMap, SGLight
 from dibrpp.mesh import laplacian_smoothness
+from dibrpp.raster import Fragments
 from dibrpp.renderer import RenderOutput
 from dibrpp.shading import GBuffer
 
@@ -70,12 +71,11 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
     return terms, weights
 
 
-def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, material, light: SGLight) -> RenderOutput:
+def shade_sun_on_held_surface(renderer: Renderer, frags: Fragments, g: GBuffer, light: SGLight) -> RenderOutput:
     """The render under SG ``light`` whose last lobe is the sun the probe head adds from the mirror cue: the other lobes (the head's own sun among them) shade the predicted surface as usual, that lobe
     shades the same pixels with the surface's normals held (no gradient): it was read off that surface, so
     bending the surface to fit its highlight would only chase the surface's own error. SG shading is linear in
     the lobes, so the image is the full light's."""
-    frags, g = renderer.gbuffer(meshes, cameras, material)
     held = GBuffer(replace(g.point, normal=g.point.normal.detach(), view=g.point.view.detach()), g.batch, g.num_images)
     lobes = lambda part: SGLight(light.axis[:, part], light.sharpness[:, part],  # noqa: E731
                                  light.amplitude[:, part]).in_frame(light.world_to_light)
@@ -84,14 +84,13 @@ def render_sun_on_held_surface(renderer: Renderer, meshes, cameras: Cameras, mat
     return RenderOutput(torch.cat([sky.rgb + sun.rgb, sky.image[..., 3:]], -1), frags, g)
 
 
-def render_sky_and_sun(renderer: Renderer, meshes, cameras: Cameras, material, light: tuple[EnvMap, SGLight],
-                       second: Renderer | None = None) -> RenderOutput | tuple[RenderOutput, torch.Tensor]:
+def shade_sky_and_sun(renderer: Renderer, frags: Fragments, g: GBuffer, light: tuple[EnvMap, SGLight],
+                      second: Renderer | None = None) -> RenderOutput | tuple[RenderOutput, torch.Tensor]:
     """The render under MC's probe sun (:meth:`Prediction.sky_and_sun`): the sky's grid shaded by ``renderer``'s MC,
     the sun's SG lobe in closed form (the SG shading of the paper) on the same G-buffer. Shading is linear in the
     light, so the image is the whole light's; the sun's part and its gradient carry no sampling noise or bias.
     ``second``: an MC renderer with other samples; then also the RGB of the same render shaded by it."""
     sky, sun = light
-    frags, g = renderer.gbuffer(meshes, cameras, material)
     lit_by_sky = renderer.shade(frags, g, sky)
     lit_by_sun = Renderer("sg", raster_settings=renderer.raster_settings).shade(frags, g, sun)
     out = RenderOutput(torch.cat([lit_by_sky.rgb + lit_by_sun.rgb, lit_by_sky.image[..., 3:]], -1), frags, g)
@@ -109,16 +108,20 @@ def multiview_losses(model, renderer: Renderer, batch: dict, config: TrainConfig
     views = Cameras(batch["world_to_camera"].reshape(b * 2, 4, 4), batch["fov"].reshape(-1), s)
     pred = model(encoder_input(flat), views)  # prediction from every view: index 2i + j
     plan = render_plan(b, config)
-    shape_pred = pred.select(plan.src)
     lighting = pred.select(plan.lit_by)
     light = lighting.light(views.world_to_camera[plan.lit_by])
-    render = Renderer.__call__
+    shade = Renderer.shade
     if config.has_probe_head() and config.shading in SG_LIGHT:  # the SG sun's floor lobe: a held surface
-        render = render_sun_on_held_surface
+        shade = shade_sun_on_held_surface
     elif config.has_probe_head():  # MC's probe sun (no floor): its SG lobe in closed form, the sky by MC
-        render = partial(render_sky_and_sun, second=second)  # train passes a second renderer where the config asks
+        shade = partial(shade_sky_and_sun, second=second)  # train passes a second renderer where the config asks
         light = lighting.sky_and_sun(views.world_to_camera[plan.lit_by])
-    out = render(renderer, shape_pred.meshes(), views[plan.dst.tolist()], shape_pred.material(), light)
+    # a prediction rendered in a view under two lights is rasterized once
+    pairs, render_of = torch.unique(plan.src * len(views) + plan.dst, return_inverse=True)
+    shape_pred = pred.select(pairs // len(views))
+    frags, g = renderer.gbuffer_of_images(shape_pred.meshes(), views[(pairs % len(views)).tolist()],
+                                          shape_pred.material(), render_of)
+    out = shade(renderer, frags, g, light)
     out, independent_rgb = out if isinstance(out, tuple) else (out, None)  # (a tuple: the second samples' RGB too)
     target = flat[plan.dst]
     terms, weights = loss_terms(pred, out, target, views, batch, config, laplacian, independent_rgb)

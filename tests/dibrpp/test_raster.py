@@ -5,6 +5,7 @@ import torch
 
 from dibrpp import Material, Renderer
 from dibrpp.camera import Cameras
+from dibrpp.lights import SGLight
 from dibrpp.mesh import Meshes, icosphere, torus
 from dibrpp.raster import DIBR_SOFT_WIDTH_PX, RasterSettings, edge_response, rasterize, sample_texture
 
@@ -357,3 +358,29 @@ def test_edge_aa_image_gradient_moves_the_outline():
     assert grads["dibr"].abs().max() == 0
     g = grads["edge_aa"]
     assert g[0, 1] < 0 and g[1, 1] > 0 and g[0, 2] < 0 and g[2, 2] > 0  # growing the square brightens the image
+
+
+@pytest.mark.parametrize("visibility,filter_width", [("dibr", 0.0), ("dibr", 1.5), ("edge_aa", 1.5)])
+def test_selected_images_render_as_the_same_renders_made_apart(visibility, filter_width):
+    """A render shaded under several lights is rasterized once and its images repeated
+    (Renderer.gbuffer_of_images): images, silhouettes and gradients as if each repeat had been rendered alone."""
+    torch.manual_seed(0)
+    sphere = icosphere(2, radius=1.0)
+    base = sphere.verts.expand(3, -1, -1) * torch.tensor([[1.0], [0.8], [1.2]]).unsqueeze(-1)
+    verts = base.clone().requires_grad_(True)
+    cams = Cameras.orbit(torch.tensor([5.0, 6.0, 4.5]), torch.tensor([10.0, 30.0, -20.0]),
+                         torch.tensor([0.0, 50.0, 120.0]), 40.0, 24)
+    material = Material(albedo=torch.tensor([[0.6, 0.4, 0.3]]), roughness=0.4)
+    renderer = Renderer("sg", raster_settings=RasterSettings(visibility=visibility, filter_width=filter_width))
+    images = torch.tensor([2, 0, 2, 1, 0])
+    light = SGLight(torch.nn.functional.normalize(torch.randn(5, 4, 3), dim=-1), torch.rand(5, 4) * 20 + 1,
+                    torch.rand(5, 4, 3))
+    frags, g = renderer.gbuffer_of_images(sphere.with_verts(verts), cams, material, images)
+    once = renderer.shade(frags, g, light)
+    (once.rgb.sum() + once.silhouette.sum()).backward()
+    grad_once, verts.grad = verts.grad, None
+    apart = renderer(sphere.with_verts(verts[images]), cams[images.tolist()], material, light)
+    (apart.rgb.sum() + apart.silhouette.sum()).backward()
+    torch.testing.assert_close(once.image, apart.image)
+    torch.testing.assert_close(once.silhouette, apart.silhouette)
+    torch.testing.assert_close(grad_once, verts.grad)

@@ -416,7 +416,7 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     from dibrpp.brdf import Material
     from dibrpp.lights import SGLight
     from dibrpp.mesh import icosphere
-    from pipelines.training.objective import render_sun_on_held_surface
+    from pipelines.training.objective import shade_sun_on_held_surface
 
     sphere = icosphere(2, radius=10.0)
     verts = sphere.verts.clone().requires_grad_(True)
@@ -429,7 +429,7 @@ def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     for sky in (0.0, 1.0):
         light = SGLight(axis, torch.tensor([[3.0, 3.0, 200.0]]), torch.tensor([[[sky] * 3, [sky] * 3, [500.0] * 3]]))
         light = light.in_frame(torch.eye(3)[None])
-        held = render_sun_on_held_surface(renderer, mesh, cams, material, light)
+        held = shade_sun_on_held_surface(renderer, *renderer.gbuffer(mesh, cams, material), light)
         torch.testing.assert_close(held.image, renderer(mesh, cams, material, light).image, atol=1e-4, rtol=1e-4)
         verts.grad = None
         held.rgb.sum().backward()
@@ -488,7 +488,7 @@ def test_an_mc_run_with_the_probe_sun_trains_loads_and_resumes(tiny_glossy, tmp_
 
 
 def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
-    """MC's probe sun is shaded as its SG lobe (objective.render_sky_and_sun) and the sky by MC. The sky and the sun
+    """MC's probe sun is shaded as its SG lobe (objective.shade_sky_and_sun) and the sky by MC. The sky and the sun
     apart make up the light the model predicts (its grid), and the render agrees with MC of that grid at many samples
     (on average within a few per cent; per pixel SG's closed form of a rough surface is ~15 % off MC's)."""
     from dibrpp.brdf import Material
@@ -496,7 +496,7 @@ def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
     from dibrpp.mesh import icosphere
     from pipelines.model.light_probe import sg_on_grid, world_to_probe
     from pipelines.model.model_input import encoder_input
-    from pipelines.training.objective import render_sky_and_sun
+    from pipelines.training.objective import shade_sky_and_sun
 
     torch.manual_seed(0)
     model = make_model(TrainConfig(shading="mc"), 32).eval()
@@ -520,7 +520,8 @@ def test_mcs_probe_sun_trains_in_closed_form_and_renders_as_its_grid():
     lit = (EnvMap(p["sky"]).in_frame(frame), SGLight(axis.unsqueeze(1), sharpness, amplitude.unsqueeze(1)).in_frame(frame))
     sphere = icosphere(3, radius=12.0).expand(2)
     material = Material(albedo=torch.tensor([[0.6, 0.5, 0.4]]), roughness=0.8, specular=0.5)
-    split = render_sky_and_sun(Renderer("mc", spp=64, seed=0), sphere, cams, material, lit)
+    mc = Renderer("mc", spp=64, seed=0)
+    split = shade_sky_and_sun(mc, *mc.gbuffer(sphere, cams, material), lit)
     reference = Renderer("mc", spp=1024, seed=1)(sphere, cams, material, EnvMap(whole).in_frame(frame))
     sky_only = Renderer("mc", spp=64, seed=0)(sphere, cams, material, lit[0])
     covered = reference.alpha > 0.99
