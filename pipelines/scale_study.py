@@ -79,10 +79,6 @@ POINTS = [
     # 500 objects: 400 training cars; 200 env maps: 160 training maps (the splits are 4:1)
     Point("cars400", "cars", 400, "glossy-cars500", (*GLOSSY, "--num-objects", "500"), "cars400"),
     Point("maps160", "maps", 160, "glossy-maps200", (*GLOSSY, "--num-envmaps", "200"), "maps160"),
-    # a diagnostic beside the resolution axis: the global code read off a map a sixteenth of the image's side
-    # (8 x 8 at 128², a fully connected layer 4x the 64² model's), as before the default's fixed 4 x 4 (docs/scale.md)
-    Point("res128-grid0", "diagnostic", 128, "glossy-128", (*GLOSSY, "--resolution", "128"), "res128-grid0",
-          ("--global-grid", "0")),
     # the metallic set (a mirror paint: the input a distorted picture of the map) at the best glossy point
     Point("metallic128", "diagnostic", 128, "metallic-128", ("--dataset", "metallic", "--resolution", "128"),
           "metallic128"),

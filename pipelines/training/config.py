@@ -55,10 +55,6 @@ class TrainConfig:
     w_iou: float = _opt(1.0, "weight of the soft-silhouette IoU loss", minimum=0.0)
     w_laplacian: float = _opt(0.02, "weight of the Laplacian smoothness of the shape", minimum=0.0)
     w_gradient: float = _opt(0.5, "weight of the multi-scale image-gradient L1 (the stand-in for VGG)", minimum=0.0)
-    w_roughness_prior: float = _opt(0.0, "weight of the mean predicted roughness: the image cannot tell a blurred "
-                                    "reflection from a blurred light, and the image loss hedges a light's error by "
-                                    "blurring the surface; this asks the light to carry the blur. For objects known "
-                                    "to be mirror-like: it holds rough paint sharp too", minimum=0.0)
     image_loss: str = _opt("hdr-srgb", "the space the image losses compare in: the sRGB curve continued above 1 "
                            "(highlights keep their gradient), or sRGB clipped at 1 (an 8-bit picture's, the paper's)",
                            ("hdr-srgb", "clipped"))
@@ -84,9 +80,6 @@ class TrainConfig:
     cross_view_light: str = _opt("both", "the light of a prediction's render in the other view of its pair: the light "
                                  "predicted from that view (eq. 8), or both that and its own (a render under each: one "
                                  "world light has to explain both views)", ("both", "view"))
-    global_grid: int = _opt(4, "side of the feature map the global code (shape, material) is read from: the image side / 16 "
-                            "halved while above this (4: one more downsampling block per doubling above 64², so the "
-                            "fully connected layer is the same at any larger input), or 0 for the image side / 16", minimum=0)
     probe_normals: str = _opt("surface", "the normals the probe head's mirror cue reads: the predicted surface's, or "
                               "in evaluation an image-space network's fitted to the GT mesh's in each training view "
                               "(pixels: 3D supervision the paper does not use; training reads the surface's)",

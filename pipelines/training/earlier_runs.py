@@ -70,7 +70,7 @@ SUN_AUTO = {"sun_lobe": "probe", "sun_cue": "facing", "sun_axis": "cue-on-metal"
 # training options of experiments that left the code later, the model unchanged, by the last commit with their code:
 # the value(s) under which the run is the default model
 LEFT_LATER = {"84e9556": {"w_albedo_variation": (0, 0.0)}, "de11f3d": {"own_light_material": ("learnt",)},
-              "fc03e2f": {"own_light_roughness": ("learnt",)}}
+              "fc03e2f": {"own_light_roughness": ("learnt",)}, "3a0c414": {"w_roughness_prior": (0, 0.0)}}
 # choices of a kept option whose experiments left the code later: option -> {choice: the last commit with its code}
 CHOICES_LEFT_LATER = {"light_colour": {"sky-prior": "97ea15f", "two-colour": "140a12d"},
                       "texture": {"projected-unlit": "2527105"}, "supervision": {"sun": "f62f542", "shape": "f62f542"},

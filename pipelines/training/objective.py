@@ -61,9 +61,6 @@ def loss_terms(pred, out, target: torch.Tensor, views: Cameras, batch: dict, con
         "gradient": gradient_loss(rgb, target_rgb * target[..., 3:], independent=other),
     }
     weights = {"image": config.w_image, "iou": config.w_iou, "laplacian": config.w_laplacian, "gradient": config.w_gradient}
-    if config.w_roughness_prior:
-        terms["roughness_prior"] = pred.roughness.mean()
-        weights["roughness_prior"] = config.w_roughness_prior
     if config.supervision in ("light-map", "light-probe"):
         light = pred.light(views.world_to_camera)
         terms["light_supervision"] = supervised_light_loss(light, batch["envmap"], config.supervision.split("-")[1])

@@ -36,6 +36,9 @@ from ..model.model_input import encoder_input
 
 CONFIG, CAMERA, CHECKPOINT = "config.json", "camera.json", "checkpoint.pt"
 MAX_TEMPLATE_SUBDIVISIONS = 6  # 40962 template vertices; each level more quadruples them
+# the global code (shape, material) read off a map of at most 4 x 4 at any input size: one more downsampling block per
+# doubling above 64², so the fully connected layer is the same at any size (docs/scale.md)
+GLOBAL_GRID = 4
 PIXEL_NORMALS = "pixel_normals.pt"  # variant pixel-normals: the network fitted before the model trains
 LOG, SUMMARY, LOSS_PLOT, SNAPSHOTS, TENSORBOARD = "log.csv", "summary.json", "loss.png", "snapshots", "tensorboard"
 
@@ -82,23 +85,12 @@ def load_config(run: Path) -> TrainConfig:
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
         if isinstance(saved, dict):
             saved.setdefault("specular", "learnt")  # a run written before the option learnt its specular level
-        if isinstance(saved, dict) and "global_grid" not in saved:
-            saved["global_grid"] = _earlier_global_grid(Path(run))
+        if isinstance(saved, dict):  # the map the global code is read off: the checkpoint's model says
+            saved.pop("global_grid", None)  # (check_config_matches_model)
         config = TrainConfig.from_dict(saved)
     except (ConfigError, RetiredError) as e:
         raise DataError(f"{path}: {e}") from e
     return config
-
-
-def _earlier_global_grid(run: Path) -> int:
-    """``global_grid`` of a run written before the field, which read its global code off the image side / 16 (0):
-    today's default where the two give the same model (every input up to 64²), else 0."""
-    if not (run / CHECKPOINT).exists():
-        return TrainConfig.global_grid
-    size = read_checkpoint(run / CHECKPOINT).get("model_config", {}).get("image_size", 64)
-    today = TrainConfig.global_grid
-    same = ModelConfig(image_size=size).grid_side() == ModelConfig(image_size=size, global_grid=today).grid_side()
-    return today if same else 0
 
 
 def _trained_light_head(run: Path) -> str | None:
@@ -246,6 +238,12 @@ def check_config_matches_model(folder: Path, config: TrainConfig, model_config: 
         if saved != built:
             raise DataError(f"{folder}: {CONFIG} says {name} = {saved!r} but {CHECKPOINT} holds a model with "
                             f"{name} = {built!r}; the files belong to different runs: restore the run's own {CONFIG}")
+    today = ModelConfig(image_size=model_config.image_size, global_grid=GLOBAL_GRID)
+    if model_config.grid_side() != today.grid_side():
+        raise DataError(f"{folder}: {CHECKPOINT} holds a model whose global code is read off a "
+                        f"{model_config.grid_side()}-cell side at {model_config.image_size}² (global_grid "
+                        f"{model_config.global_grid}), today's off {today.grid_side()}; that option has left the code: "
+                        "evaluate or resume the run at commit 3a0c414 (git checkout 3a0c414), or retrain it")
 
 
 # ----------------------------------------------------------------------------- what a run is built from
@@ -256,7 +254,7 @@ def make_model(config: TrainConfig, image_size: int) -> Encoder:
                                predict_metallic=bool(config.predict_metallic), texture=config.texture,
                                light_colour=config.light_colour, light_head=config.model_light_head(),
                                input_range=config.input_range, probe_normals=config.probe_normals,
-                               global_grid=config.global_grid, specular=config.specular))
+                               global_grid=GLOBAL_GRID, specular=config.specular))
 
 
 def make_optimizer(model: Encoder, config: TrainConfig) -> torch.optim.Adam:

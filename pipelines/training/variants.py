@@ -62,8 +62,7 @@ VARIANTS: dict[str, Variant] = {
                                     {"supervision": "roughness"}, kind="diagnostic", runs=(("metallic", 0),)),
 }
 
-# the fields some variant sets, global_grid (its 0 only undoes a default) and the experiments' options no variant
-# names: a run that changes them by hand is labelled with them (not the lobes, which the paper's tables set: a budget
-# the tables compare, not a model choice)
+# the fields some variant sets and the experiments' options no variant names: a run that changes them by hand is
+# labelled with them (not the lobes, which the paper's tables set: a budget the tables compare, not a model choice)
 EXPERIMENT_FIELDS = tuple(dict.fromkeys([*(k for v in VARIANTS.values() for k in v.fields if k != "lobes"),
-                                         "global_grid", "w_roughness_prior", "specular"]))
+                                         "specular"]))

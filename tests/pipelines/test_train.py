@@ -394,21 +394,6 @@ def test_cross_view_renders_are_lit_by_the_views_light_and_again_by_the_predicti
     assert torch.equal(both.lit_by[n:], view.src[cross])
 
 
-def test_the_roughness_prior_adds_the_mean_roughness_at_its_weight(tiny_glossy):
-    batch = TrainingData(tiny_glossy, 32).batch(0, 2, 0)
-    totals, terms = {}, {}
-    for w in (0.0, 0.5):  # the same model (seeded) and batch, with and without the prior
-        cfg = config(tiny_glossy, "unused", lobes=4, compile=False, w_roughness_prior=w)
-        torch.manual_seed(0)
-        model = make_model(cfg, 32)
-        laplacian = uniform_laplacian(model.faces, model.template_dirs.shape[1])
-        totals[w], terms[w], snap = multiview_losses(model, make_renderer(cfg, 0, training=True), batch, cfg, laplacian)
-    assert "roughness_prior" not in terms[0.0]
-    assert cfg.label() == "w_roughness_prior=0.5"  # not the default model in a table
-    assert torch.allclose(terms[0.5]["roughness_prior"], snap["pred"].roughness.mean())
-    assert torch.allclose(totals[0.5] - totals[0.0], 0.5 * terms[0.5]["roughness_prior"], atol=1e-5)
-
-
 def test_the_probe_sun_lights_the_render_but_does_not_bend_the_surface():
     """The probe head's sun floor: the image is the full light's, but the sun (the last lobe) sends no gradient to the shape,
     while the other lobes do."""
@@ -640,6 +625,9 @@ def test_a_run_of_an_experiment_that_left_later_reads_as_the_default_or_is_refus
         load_config(run("own-roughness-held", own_light_roughness="held"))
     with pytest.raises(DataError, match=r"light_head='space'.*git checkout 08b4aeb"):
         load_config(run("light-space", light_head="space", light_colour="white", variant="light-space"))
+    assert load_config(run("default-4", w_roughness_prior=0.0)) == TrainConfig(iterations=6000)
+    with pytest.raises(DataError, match=r"w_roughness_prior=0\.5.*git checkout 3a0c414"):
+        load_config(run("roughness-prior", w_roughness_prior=0.5))
 
 
 def test_a_checkpoint_before_the_house_change_loads_as_it_was_or_is_refused():
@@ -725,18 +713,18 @@ def test_a_run_warns_when_other_processes_keep_the_cores_busy(monkeypatch, capsy
     assert 0.0 <= train_module.other_busy_cores()
 
 
-def test_a_run_written_before_global_grid_reads_as_the_model_it_trained(tmp_path):
-    from pipelines.training.runs import load_config
+def test_a_model_whose_global_code_reads_another_map_than_todays_is_refused_naming_the_commit(tmp_path):
+    from pipelines.model.encoder import ModelConfig
+    from pipelines.training.runs import check_config_matches_model, load_config
 
-    for size, grid, label in ((64, 4, ""), (128, 0, "global_grid=0")):
-        run = tmp_path / f"run{size}"
-        run.mkdir()
-        saved = TrainConfig(dataset="data/glossy", out=str(run)).to_dict()
-        del saved["global_grid"]  # the field did not exist yet; the global code was read off the image side / 16
-        (run / "config.json").write_text(json.dumps(saved))
-        torch.save({"model_config": {"image_size": size}, "model": {}, "iteration": 0}, run / "checkpoint.pt")
-        config = load_config(run)
-        assert config.global_grid == grid and config.label() == label, size
+    saved = {**TrainConfig(dataset="data/glossy", out=str(tmp_path)).to_dict(), "global_grid": 0}
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    config = load_config(tmp_path)  # a config that still names the option reads as today's
+    assert config.label() == ""
+    for size, grid in ((64, 0), (64, 4), (128, 4)):  # 4 x 4 either way at 64²
+        check_config_matches_model(tmp_path, config, ModelConfig(image_size=size, global_grid=grid))
+    with pytest.raises(DataError, match="global_grid 0.*git checkout 3a0c414"):  # 8 x 8 at 128²
+        check_config_matches_model(tmp_path, config, ModelConfig(image_size=128, global_grid=0))
 
 
 def test_a_run_written_before_the_specular_option_learnt_it_and_a_config_that_disagrees_is_refused(tmp_path):
