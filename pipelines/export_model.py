@@ -88,7 +88,8 @@ def model_card(name: str, config: dict, camera: dict, metrics: dict, iteration: 
         f"the light as {config['lobes']} SG lobes "
         "(world frame, written as an env map).",
         f"- **Code:** commit `{commit}`; weights in half precision (evaluated as shipped).",
-        f"- **Retrain:** `{retrain}`", "",
+        f"- **Retrain:** `{retrain}`; another machine's rounding moves a retrain's metrics as another seed does: "
+        "within the seed spread of docs/results.md (the default with a sky and a ground).", "",
         f"## Test split of `{dataset}` ({metrics.get('test_views', '?')} views; `make eval`'s metrics)", "",
         metrics_table(metrics), "",
         "Lower is better everywhere. What the numbers mean and how they compare with the paper: docs/evaluation.md "
