@@ -189,12 +189,17 @@ def profile_iterations(config: TrainConfig, iterations: int, warmup: int = 2) ->
 def write_results(results: list[dict], config: TrainConfig, res: int, iterations: int, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     cols = ["shading", *PHASES, "total"]
+    sg = next((r["total"] for r in results if r["shading"] == "sg"), None)
+    if sg:  # each shading's step against SG's, timed in the same run
+        results = [{**r, "x SG": r["total"] / sg} for r in results]
+        cols.append("x SG")
     write_csv(out / "train.csv", results, cols)
     model = f"variant {config.variant}" if config.variant else "the default model"
     lines = [f"Training iteration on {config.device}, {model} ({config.batch_objects} objects x 2 views, "
              f"{4 * config.batch_objects} renders of {res}x{res}, K={config.lobes}, MC spp={config.spp}); ms, "
              f"median of {iterations}", "",
-             markdown_table(cols, [[r["shading"]] + [f"{r[k]:.0f}" for k in cols[1:]] for r in results])]
+             markdown_table(cols, [[r["shading"]] + [f"{r[k]:.2f}" if k == "x SG" else f"{r[k]:.0f}" for k in cols[1:]]
+                                   for r in results])]
     (out / "train.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'train.md'}")
 
@@ -223,6 +228,9 @@ def main(argv=None) -> int:
     except DataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    sg = next((r["total"] for r in results if r["shading"] == "sg"), None)
+    if sg and len(results) > 1:
+        print("against SG's step: " + ", ".join(f"{r['shading']} {r['total'] / sg:.2f}x" for r in results))
     resolution = MultiViewDataset(args.dataset, split="train", views_per_item=1).resolution
     write_results(results, runs[0], resolution, args.iterations, Path(args.out))
     return 0

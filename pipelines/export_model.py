@@ -124,6 +124,7 @@ def export(run: Path, out: Path, retrain: str, commit: str | None = None) -> Pat
             shutil.copyfile(run / name, folder / name)
         print(f"evaluating the shipped weights for {out} on the test split of {loaded.config.dataset}", flush=True)
         metrics, _ = evaluate_run(folder, eval_spp=EVAL_SPP, view_stride=EVAL_VIEW_STRIDE)
+        metrics["run"] = str(out)  # the model's own folder, not the one it is staged in
         with atomic_path(folder / METRICS) as tmp:
             tmp.write_text(json.dumps(metrics, indent=1))
         summary = read_json(run / SUMMARY, "training summary") if (run / SUMMARY).exists() else {}

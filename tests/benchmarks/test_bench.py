@@ -28,3 +28,14 @@ def test_training_benchmark_splits_an_iteration(tiny_glossy, tmp_path):
     assert abs(parts - float(row["total"])) < 0.05 * float(row["total"]) + 1
     assert bench_train.main(["--dataset", str(tmp_path / "missing")]) == 2
     assert bench_train.main(["--dataset", str(tiny_glossy), "--variant", "no-such-variant"]) == 2
+
+
+def test_training_benchmark_puts_each_step_against_sgs(tmp_path):
+    from pipelines.training.config import TrainConfig
+
+    phases = dict(data=0.0, encoder=40.0, backward=100.0, optimizer=5.0)
+    results = [{"shading": s, **phases, "render+losses": r, "total": 145.0 + r} for s, r in (("sg", 55.0), ("mc", 255.0))]
+    bench_train.write_results(results, TrainConfig(), 64, 3, tmp_path)
+    rows = {r["shading"]: r for r in csv.DictReader(open(tmp_path / "train.csv"))}
+    assert float(rows["sg"]["x SG"]) == 1.0 and float(rows["mc"]["x SG"]) == 2.0
+    assert "| mc | 0 | 40 | 255 | 100 | 5 | 400 | 2.00 |" in (tmp_path / "train.md").read_text()

@@ -69,3 +69,4 @@ def test_an_export_replaces_the_model_in_out_whole(run, tmp_path, capsys):
                                                      "metrics.json"]
     assert (out / "checkpoint.pt").read_bytes() != b"the earlier model"
     assert "# glossy" in (out / "MODEL_CARD.md").read_text()
+    assert json.loads((out / "metrics.json").read_text())["run"] == str(out)  # not the folder it was staged in
