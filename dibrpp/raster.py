@@ -195,19 +195,24 @@ class Fragments:
         return out.view(b, h, w, -1)
 
 
-def _first_index(batch: torch.Tensor, num_images: int) -> torch.Tensor:
-    """(num_images,) where each image's run starts in the image-sorted packed index ``batch``."""
+def _runs(batch: torch.Tensor, num_images: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(num_images,) how many entries each image has in the image-sorted packed index ``batch``, and where its run
+    starts."""
     counts = torch.bincount(batch, minlength=num_images)
-    return torch.cumsum(counts, 0) - counts
+    return counts, torch.cumsum(counts, 0) - counts
+
+
+def _first_index(batch: torch.Tensor, num_images: int) -> torch.Tensor:
+    return _runs(batch, num_images)[1]
 
 
 def _select_packed(batch: torch.Tensor, images: torch.Tensor, num_images: int) -> tuple[torch.Tensor, torch.Tensor]:
     """For packed entries sorted by image (``batch``), the entries of ``images`` in that order: their indices and
     their new image index (0..M-1)."""
-    counts = torch.bincount(batch, minlength=num_images)[images]
+    counts, first = (t[images] for t in _runs(batch, num_images))
     new_batch = torch.repeat_interleave(torch.arange(len(images), device=batch.device), counts)
     within = torch.arange(len(new_batch), device=batch.device) - (torch.cumsum(counts, 0) - counts)[new_batch]
-    return _first_index(batch, num_images)[images][new_batch] + within, new_batch
+    return first[new_batch] + within, new_batch
 
 
 def rasterize(meshes: Meshes, cameras: Cameras, settings: RasterSettings | None = None) -> Fragments:

@@ -85,8 +85,7 @@ def load_config(run: Path) -> TrainConfig:
             saved = earlier_train_config(saved, _trained_light_head(Path(run)))
         if isinstance(saved, dict):
             saved.setdefault("specular", "learnt")  # a run written before the option learnt its specular level
-        if isinstance(saved, dict):  # the map the global code is read off: the checkpoint's model says
-            saved.pop("global_grid", None)  # (check_config_matches_model)
+            saved.pop("global_grid", None)  # the map the global code is read off: the checkpoint's model says it
         config = TrainConfig.from_dict(saved)
     except (ConfigError, RetiredError) as e:
         raise DataError(f"{path}: {e}") from e
