@@ -21,12 +21,13 @@ SEEDS ?= 1 2
 TRAIN_ARGS ?=
 
 # data-% and train-% are pattern rules, which make does not apply to .PHONY targets.
-.PHONY: models demo setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
+.PHONY: models demo light-turns setup system-libs test train-published train-variants train-variant-runs reproduce first-look test-fast bench bench-renderer bench-train bench-mitsuba studies study-reflections study-maps study-resolution study-scale data eval train-ablations clean help
 
 help:
 	@echo "make reproduce        every paper table and figure end to end: data, every method and seed, Tables D/E, the published model, evaluation, bench, studies (resumable; ~22-29 h on 2 cores; TRAIN_ARGS='--iterations 1500': a quarter of the training)"
 	@echo "make first-look       the glossy set, SG, seed 0, evaluated (32 min on 2 cores)"
 	@echo "make demo             the shipped glossy model on the example photo: results/demo/overview.png, report.html (seconds)"
+	@echo "make light-turns      where the shipped models place the example sky's sun as it goes round (~30 s; results/light-turns/)"
 	@echo "make models           retrain, evaluate and ship the models in models/ (glossy and metallic SG)"
 	@echo "make setup            create $(VENV) and install dibrpp with Blender (bpy), torch and test tools"
 	@echo "make test             run the full test suite (includes Cycles comparisons; what CI runs)"
@@ -189,6 +190,11 @@ models: $(VENV)/.installed
 demo: $(VENV)/.installed
 	$(PY) -m pipelines.predict --checkpoint models/glossy-sg --image examples/car_photo.exr --elevation 15 \
 	  --azimuth 30 --true-light examples/sky.exr --out results/demo
+
+# Where the shipped models place a known sun: the example car under the example sky, its sun turned in 8 steps, from
+# the example photo's camera and the training's (docs/evaluation.md#a-known-sun-turned).
+light-turns: $(VENV)/.installed
+	$(PY) -m pipelines.light_turns --runs models/glossy-sg models/metallic-sg --out results/light-turns
 
 # A first look: the glossy set, SG, seed 0, evaluated.
 first-look: data-glossy

@@ -91,3 +91,45 @@ def foreground_mask(path, rgb: torch.Tensor, background, tolerance: float) -> to
                         "--background R,G,B (sRGB 0-1) to cut out a flat background")
     distance = (display_image(rgb) - torch.tensor(background, dtype=rgb.dtype)).abs().amax(-1)
     return (distance > tolerance).float().unsqueeze(-1)
+
+
+def read_view(model, rgba: torch.Tensor, path, trained: dict, setup: dict, azimuth: float, framing_mode: str = "auto",
+              device: str = "cpu", say=print):
+    """The model's prediction from one image (``rgba``: :func:`read_input`'s) seen by an orbit camera (``setup``:
+    distance, elevation_deg and fov_deg; ``azimuth`` in degrees; ``trained``: the run's camera.json, whose framing
+    the image is given): (the prediction, the camera, the framed (S, S, 4) input the model read)."""
+    from dibrpp import Cameras
+
+    from .model.model_input import encoder_input
+
+    size = model.config.image_size  # the side of the images the run trained on
+    framed = framing.resize_input(framing.frame_input(path, rgba, trained, framing_mode, say), size)
+    if model.config.input_range == "full" and float(rgba[..., :3].max()) <= 1.0:
+        say(f"note: {path} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
+            "the full range and places the light best from a linear EXR of the same view")
+    cam = Cameras.orbit(setup["distance"], setup["elevation_deg"], azimuth, setup["fov_deg"], size)
+    return model(encoder_input(framed[None].to(device)), cam.to(device)), cam, framed
+
+
+def read_true_light(path: Path) -> torch.Tensor:
+    """(64, 128, 3) the env map an image was taken under (world frame, the project's convention; .exr or .hdr),
+    resampled as the datasets resample a file map."""
+    from datagen.envmap_files import EnvmapError, check_envmap, read_envmap_file, resample_equirect
+
+    if not Path(path).is_file():
+        raise DataError(f"--true-light {path}: no such file; give an env map (.exr or .hdr)")
+    try:
+        env = read_envmap_file(path)
+        check_envmap(path, env)
+    except EnvmapError as e:
+        raise DataError(f"--true-light {e}") from None
+    return torch.from_numpy(np.ascontiguousarray(resample_equirect(env, 64))).float()
+
+
+def sun_angle_deg(predicted: torch.Tensor, true: torch.Tensor) -> float:
+    """Degrees between the dominant directions (evaluation.metrics.dominant_direction, the eval's sun) of two
+    world-frame maps (H, W, 3)."""
+    from .evaluation.metrics import dominant_direction
+
+    suns = dominant_direction(torch.stack([predicted, true]))[0]
+    return math.degrees(math.acos(float((suns[0] * suns[1]).sum().clamp(-1, 1))))

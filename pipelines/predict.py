@@ -41,25 +41,19 @@ and choosing the camera: docs/photo.md.
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from dibrpp import Cameras
 from dibrpp.cli_args import (Parser, check_output_folder, finite_float, float_in, int_in, non_negative_float, unit_rgb)
 from dibrpp.io import DataError, atomic_path, staged, write_exr, write_png, write_textured_obj
 
-from .evaluation.metrics import dominant_direction
 from .evaluation.prediction_figure import OVERVIEW, REPORT, write_overview, write_report
 from .gltf import write_glb
-from .model import framing
-from .model.framing import resize_input
-from .model.model_input import encoder_input
-from .photo_input import read_input
+from .photo_input import read_input, read_true_light, read_view, sun_angle_deg
 from .training.refine import MAX_STEPS, refine_light
 from .training.runs import load_camera, load_run, make_renderer, run_folder
 
@@ -92,20 +86,14 @@ def predict(run: Path, image: Path, out: Path, azimuth: float = 0.0, background=
     say(f"loading {run}")
     loaded = load_run(run)
     config, model = loaded.config, loaded.model.to(device)
-    size = model.config.image_size  # the side of the images the run trained on
     trained = checked_camera(run)
     setup = dict(distance=trained["distance"] if distance is None else distance,
                  elevation_deg=trained["elevation_deg"] if elevation is None else elevation,
                  fov_deg=trained["fov_deg"] if fov is None else fov)
     warn_unusual_camera(setup, trained)
     orbit = lambda az, side: Cameras.orbit(setup["distance"], setup["elevation_deg"], az, setup["fov_deg"], side)  # noqa: E731
-    rgba = resize_input(framing.frame_input(image, image_rgba, trained, framing_mode, say), size)
-    if model.config.input_range == "full" and float(image_rgba[..., :3].max()) <= 1.0:
-        say(f"note: {image} holds no radiance above 1 (an 8-bit picture clips the sun's reflection); this model reads "
-            "the full range and places the light best from a linear EXR of the same view")
     say(f"predicting shape, texture, material and light from {image}")
-    cam = orbit(azimuth, size)
-    pred = model(encoder_input(rgba[None].to(device)), cam.to(device))
+    pred, cam, rgba = read_view(model, image_rgba, image, trained, setup, azimuth, framing_mode, device, say)
     reach = float(pred.meshes().verts[0].norm(dim=-1).max())
     if setup["distance"] <= reach:
         raise DataError(f"--distance {setup['distance']:g}: the camera sits inside the predicted object, which reaches "
@@ -200,28 +188,6 @@ def warn_unusual_camera(setup: dict, trained: dict) -> None:
     if not USUAL_DISTANCE[0] <= ratio <= USUAL_DISTANCE[1]:
         say(f"warning: --distance {setup['distance']:g} is {ratio:.3g} times the training camera's "
             f"({trained['distance']:g}); the shape is read with a perspective unlike any it learnt")
-
-
-def read_true_light(path: Path) -> torch.Tensor:
-    """(64, 128, 3) the env map an image was taken under (world frame, the project's convention; .exr or .hdr),
-    resampled as the datasets resample a file map."""
-    from datagen.envmap_files import EnvmapError, check_envmap, read_envmap_file, resample_equirect
-
-    if not Path(path).is_file():
-        raise DataError(f"--true-light {path}: no such file; give an env map (.exr or .hdr)")
-    try:
-        env = read_envmap_file(path)
-        check_envmap(path, env)
-    except EnvmapError as e:
-        raise DataError(f"--true-light {e}") from None
-    return torch.from_numpy(np.ascontiguousarray(resample_equirect(env, 64))).float()
-
-
-def sun_angle_deg(predicted: torch.Tensor, true: torch.Tensor) -> float:
-    """Degrees between the dominant directions (evaluation.metrics.dominant_direction, the eval's sun) of two
-    world-frame maps (H, W, 3)."""
-    suns = dominant_direction(torch.stack([predicted, true]))[0]
-    return math.degrees(math.acos(float((suns[0] * suns[1]).sum().clamp(-1, 1))))
 
 
 class RefineProgress:

@@ -15,6 +15,7 @@ from PIL import Image
 
 from dibrpp.io import read_image, write_exr
 from pipelines import diagnose_light, evaluate, predict, train
+from pipelines.model.framing import resize_input
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -218,7 +219,7 @@ def test_predict_reads_every_kind_of_image_at_its_own_depth(kind, tmp_path):
         got = read_image(path, linear=False)
         assert got.shape == expect.shape and np.abs(got - expect).max() < 1e-6  # every one of the 65536 levels
     background = (0.0, 0.0, 0.0) if kind in ("RGB", "L", "grey16", "rgb16") else None
-    rgba = predict.resize_input(predict.read_input(path, background, 0.05), 32)
+    rgba = resize_input(predict.read_input(path, background, 0.05), 32)
     assert rgba.shape == (32, 32, 4) and 0 < float(rgba[..., 3].mean()) < 1  # the object, on a background
 
 

@@ -8,7 +8,8 @@ import trimesh
 from PIL import Image
 
 from dibrpp.io import read_exr, read_image, write_exr
-from pipelines import predict
+from pipelines import photo_input, predict
+from pipelines.model import framing
 from pipelines import train
 
 
@@ -160,9 +161,9 @@ def test_a_known_light_is_shown_beside_the_prediction_with_the_angle_between_the
     d = conventions.equirect_directions(64, 128, dtype=torch.float64)
     sun = torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64) / 2 ** 0.5
     sky = (0.5 + 200 * torch.exp(300 * ((d * sun).sum(-1, keepdim=True) - 1))).expand(64, 128, 3).float()
-    assert predict.sun_angle_deg(sky, sky) == pytest.approx(0.0, abs=1e-3)
+    assert photo_input.sun_angle_deg(sky, sky) == pytest.approx(0.0, abs=1e-3)
     # turned by 90 degrees about up, a sun at 45 degrees of elevation moves by acos(1/2) = 60 degrees
-    assert predict.sun_angle_deg(torch.roll(sky, 32, 1), sky) == pytest.approx(60.0, abs=3.0)
+    assert photo_input.sun_angle_deg(torch.roll(sky, 32, 1), sky) == pytest.approx(60.0, abs=3.0)
     write_exr(tmp_path / "sky.exr", sky)
     image = next((tiny_glossy / "samples").glob("*/view_01.png"))
     out = tmp_path / "pred"
@@ -207,7 +208,7 @@ def test_the_colour_under_transparent_pixels_does_not_bleed_into_the_resized_inp
         rgba[16:48, 15, :3], rgba[16:48, 15, 3] = torch.tensor([0.6, 0.2, 0.1]), 0.5  # a half-covered column
         return rgba
 
-    white, black = predict.resize_input(image(1.0), 16), predict.resize_input(image(0.0), 16)
+    white, black = framing.resize_input(image(1.0), 16), framing.resize_input(image(0.0), 16)
     assert torch.allclose(white, black, atol=1e-6)
     covered = white[..., 3] > 0
     assert torch.allclose(white[covered][:, :3], torch.tensor([0.6, 0.2, 0.1]).expand(int(covered.sum()), 3), atol=1e-5)

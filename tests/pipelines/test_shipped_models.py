@@ -59,7 +59,7 @@ def car_at(tmp_path_factory):
     pytest.importorskip("bpy")
     from datagen.cycles.render import render_scene
     from dibrpp.io import write_exr
-    from examples.make import PHOTO_PAINT, car_mesh, sky
+    from datagen.example_scene import PHOTO_PAINT, car_mesh, sky
 
     setup = load_camera(GLOSSY)
     verts, faces = car_mesh()
