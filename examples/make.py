@@ -2,14 +2,15 @@
 
     python -m examples.make            # or --out DIR
 
-The scene is ``datagen.example_scene``'s. ``examples/car.obj``: one procedural car of the datasets' generator (``datagen.shapes``, seed 3), meshed on a
-coarse grid and scaled into the unit sphere (the datasets' objects span [-18, 18]), so that a camera at the
-default distance of 3 sees all of it from any direction. ``examples/sky.exr``: a 64 x 128 analytic sky, blue
-above a grey ground, with a warm sun; linear RGB, Blender's orientation (+Z up, +X at the centre). Both are
-deterministic. ``examples/car_photo.exr`` (linear RGBA) and ``car_photo.png`` (8-bit sRGB RGBA): the car as a
-photo of it would frame it, the input of ``make demo``: rendered by Blender Cycles at 256 x 256 and cropped to
-256 x 208, a red glossy paint, under the sky, from 15 degrees of elevation at 80 units (the datasets' cameras: 27
-degrees at 60, their objects scaled into [-18, 18]): the car smaller in the frame than in training, and off-centre.
+The scene is ``datagen.example_scene``'s. ``examples/car.obj``: one procedural car of the datasets' generator
+(``datagen.shapes``, seed 3), meshed on a coarse grid and scaled into the unit sphere (the datasets' objects span
+[-18, 18]), so that a camera at the default distance of 3 sees all of it from any direction. ``examples/sky.exr``: a
+64 x 128 analytic sky, blue above a grey ground, with a warm sun; linear RGB, Blender's orientation (+Z up, +X at
+the centre). Both are deterministic. ``examples/car_photo.exr`` (linear RGBA) and ``car_photo.png`` (8-bit sRGB
+RGBA): the car as a photo of it would frame it, the input of ``make demo``: rendered by Blender Cycles at 256 x 256
+and cropped to 256 x 208, a red glossy paint, under the sky, from 15 degrees of elevation at 80 units (the datasets'
+cameras: 27 degrees at 60, their objects scaled into [-18, 18]): the car smaller in the frame than in training, and
+off-centre.
 """
 from __future__ import annotations
 

@@ -48,12 +48,10 @@ def relative_azimuth(sun_azimuth: float) -> float:
     return (sun_azimuth - scene.PHOTO_AZIMUTH + 180.0) % 360.0 - 180.0
 
 
-def camera_setup(name: str, trained: dict) -> tuple[dict, int]:
-    """(the orbit camera read with: distance, elevation_deg, fov_deg; the render's side) of camera ``name``. The
-    photo is read at its own elevation and the training distance, as ``make demo`` reads it (re-framed)."""
-    if name == "photo":
-        return dict(trained, elevation_deg=scene.PHOTO_ELEVATION), scene.PHOTO_SIDE
-    return dict(trained), int(trained.get("image_size", 64))
+def camera_setup(name: str, trained: dict) -> dict:
+    """The orbit camera (distance, elevation_deg, fov_deg) a view of camera ``name`` is read with: the photo at its
+    own elevation and the training distance, as ``make demo`` reads it (re-framed); the training view as trained."""
+    return dict(trained, elevation_deg=scene.PHOTO_ELEVATION) if name == "photo" else dict(trained)
 
 
 def render_path(folder: Path, name: str, trained: dict, turn: int, turns: int, spp: int) -> Path:
@@ -61,7 +59,7 @@ def render_path(folder: Path, name: str, trained: dict, turn: int, turns: int, s
     if name == "photo":
         key = "photo"
     else:
-        key = f"training-el{trained['elevation_deg']:g}-d{trained['distance']:g}-s{int(trained.get('image_size', 64))}"
+        key = f"training-el{trained['elevation_deg']:g}-d{trained['distance']:g}-s{trained['image_size']}"
     return folder / "renders" / f"{key}-spp{spp}-turn{turn}of{turns}.exr"
 
 
@@ -73,9 +71,8 @@ def render_view(path: Path, name: str, trained: dict, sun_azimuth: float, spp: i
     if name == "photo":
         rgba = scene.photo(*car, env, spp)
     else:
-        side = int(trained.get("image_size", 64))
         rgba = scene.render_car(*car, env, trained["distance"], trained["elevation_deg"], scene.PHOTO_AZIMUTH,
-                                trained["fov_deg"], side, spp)
+                                trained["fov_deg"], trained["image_size"], spp)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_exr(path, rgba)
     return path
@@ -84,7 +81,7 @@ def render_view(path: Path, name: str, trained: dict, sun_azimuth: float, spp: i
 @torch.no_grad()
 def read_turn(run, trained: dict, name: str, image: Path, sun_azimuth: float) -> dict:
     """One run's reading of one view: the predicted world-frame map and the angle between its sun and the true."""
-    setup, _ = camera_setup(name, trained)
+    setup = camera_setup(name, trained)
     rgba = torch.from_numpy(np.ascontiguousarray(read_exr(image, "RGBA"))).float()
     pred, cam, _ = read_view(run.model, rgba, image, trained, setup, scene.PHOTO_AZIMUTH, say=lambda _: None)
     predicted = pred.light(cam.world_to_camera).to_envmap(64, 128).image[0]
@@ -104,8 +101,8 @@ def measure(runs: list[Path], out: Path, turns: int, spp: int, say=print) -> dic
     azimuths = sun_azimuths(turns)
     results, maps = {}, {}
     for run_dir in runs:
-        run, trained = load_run(run_dir), load_camera(run_dir)
-        trained.setdefault("image_size", run.model.config.image_size)
+        run = load_run(run_dir)
+        trained = dict(load_camera(run_dir), image_size=run.model.config.image_size)
         results[str(run_dir)] = {}
         for name in CAMERAS:
             rows = []

@@ -1,5 +1,6 @@
-"""The input image of ``pipelines.predict``, read and checked: linear RGB with straight alpha (the object's
-coverage), from the file's own alpha, a ``--mask`` image or a flat ``--background`` cut out (see predict's doc)."""
+"""A photo as a model's input: the image read and checked (linear RGB with straight alpha, the object's coverage,
+from the file's own alpha, a ``--mask`` image or a flat ``--background`` cut out; see predict's doc), the model's
+reading of it from an orbit camera, and the light it was taken under where that is known (``--true-light``)."""
 from __future__ import annotations
 
 import math
