@@ -85,6 +85,8 @@ CLIS = [
         ("pipelines.diagnose_light:diagnose",), paths=dict(run="dir-in", dataset="dir-in")),
     Cli("python -m pipelines.diagnose_sky", "pipelines.diagnose_sky:main", ["--runs", "{run}"],
         ("pipelines.diagnose_sky:diagnose",), paths=dict(runs="dir-in", dataset="dir-in")),
+    Cli("python -m pipelines.light_turns", "pipelines.light_turns:main", ["--runs", "{run}", "--out", "{out}"],
+        ("pipelines.light_turns:measure",), paths=dict(runs="dir-in", out="dir-out")),
     Cli("python -m pipelines.light_ceiling", "pipelines.light_ceiling:main", ["--dataset", "{data}", "--out", "{out}"],
         ("pipelines.light_ceiling:ceiling",), fakes=("pipelines.light_ceiling:MultiViewDataset",),
         paths=dict(dataset="dir-in", out="dir-out")),
