@@ -94,9 +94,9 @@ def summary(angles: list[float]) -> dict:
                 worst_deg=max(angles), turn0_deg=angles[0])
 
 
-def measure(runs: list[Path], out: Path, turns: int, spp: int, say=print) -> dict:
-    """Render what is missing, read every view with every run; returns {run: {camera: {turns: [...], summary}}}
-    and the maps for the figure."""
+def measure(runs: list[Path], out: Path, turns: int, spp: int, say=print) -> tuple[dict, dict]:
+    """Render what is missing and read every view with every run: ({run: {camera: {turns: [...], the summary}}},
+    {(run, camera, turn): (the predicted map, the true map)} for the figure)."""
     car = scene.car_mesh()
     azimuths = sun_azimuths(turns)
     results, maps = {}, {}
