@@ -63,11 +63,10 @@ def render_path(folder: Path, name: str, trained: dict, turn: int, turns: int, s
     return folder / "renders" / f"{key}-spp{spp}-turn{turn}of{turns}.exr"
 
 
-def render_view(path: Path, name: str, trained: dict, sun_azimuth: float, spp: int, car) -> Path:
-    """Render (once) the car under the sky with its sun at ``sun_azimuth`` from camera ``name`` into ``path``."""
+def render_view(path: Path, name: str, trained: dict, env: np.ndarray, spp: int, car) -> Path:
+    """Render (once) the car under the sky ``env`` from camera ``name`` into ``path``."""
     if path.exists():
         return path
-    env = scene.sky(sun_azimuth=sun_azimuth)
     if name == "photo":
         rgba = scene.photo(*car, env, spp)
     else:
@@ -79,13 +78,13 @@ def render_view(path: Path, name: str, trained: dict, sun_azimuth: float, spp: i
 
 
 @torch.no_grad()
-def read_turn(run, trained: dict, name: str, image: Path, sun_azimuth: float) -> dict:
-    """One run's reading of one view: the predicted world-frame map and the angle between its sun and the true."""
+def read_turn(run, trained: dict, name: str, image: Path, true: torch.Tensor) -> dict:
+    """One run's reading of one view taken under ``true``: the predicted world-frame map and the angle between its
+    sun and the true."""
     setup = camera_setup(name, trained)
     rgba = torch.from_numpy(np.ascontiguousarray(read_exr(image, "RGBA"))).float()
     pred, cam, _ = read_view(run.model, rgba, image, trained, setup, scene.PHOTO_AZIMUTH, say=lambda _: None)
     predicted = pred.light(cam.world_to_camera).to_envmap(64, 128).image[0]
-    true = torch.from_numpy(scene.sky(sun_azimuth=sun_azimuth))
     return dict(predicted=predicted, true=true, angle=sun_angle_deg(predicted, true))
 
 
@@ -99,6 +98,7 @@ def measure(runs: list[Path], out: Path, turns: int, spp: int, say=print) -> tup
     {(run, camera, turn): (the predicted map, the true map)} for the figure)."""
     car = scene.car_mesh()
     azimuths = sun_azimuths(turns)
+    skies = [scene.sky(sun_azimuth=a) for a in azimuths]  # the true light of each turn, made once
     results, maps = {}, {}
     for run_dir in runs:
         run = load_run(run_dir)
@@ -110,7 +110,8 @@ def measure(runs: list[Path], out: Path, turns: int, spp: int, say=print) -> tup
                 path = render_path(out, name, trained, k, turns, spp)
                 if not path.exists():
                     say(f"rendering the {name} camera's view, turn {k + 1} of {turns} (Cycles, {spp} spp)")
-                reading = read_turn(run, trained, name, render_view(path, name, trained, azimuth, spp, car), azimuth)
+                image = render_view(path, name, trained, skies[k], spp, car)
+                reading = read_turn(run, trained, name, image, torch.from_numpy(skies[k]))
                 rows.append(dict(turn=k, sun_azimuth_deg=azimuth % 360.0, relative_azimuth_deg=relative_azimuth(azimuth),
                                  angle_deg=round(reading["angle"], 2)))
                 maps[str(run_dir), name, k] = reading["predicted"], reading["true"]
